@@ -1,0 +1,376 @@
+"""Configuration: dataclasses with a docstring per field, strict YAML loading, dotted overrides.
+
+Every field is documented by the string literal that follows it (read by `field_docs`). Loading is
+strict: an unknown key is an error that names the key, the file and the closest valid key.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import difflib
+import inspect
+import textwrap
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from h2viz.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+@dataclass
+class IntrinsicsConfig:
+    fx: float = 0.0
+    """Focal length x in pixels (0 = take from the data, or the format's default)."""
+    fy: float = 0.0
+    """Focal length y in pixels (0 = take from the data, or the format's default)."""
+    cx: float = 0.0
+    """Principal point x in pixels."""
+    cy: float = 0.0
+    """Principal point y in pixels."""
+
+    def is_set(self) -> bool:
+        return self.fx > 0 and self.fy > 0
+
+
+@dataclass
+class SyntheticConfig:
+    seed: int = 0
+    """Random seed of the procedural room, its textures and the trajectory."""
+    width: int = 640
+    """Rendered image width in pixels."""
+    height: int = 480
+    """Rendered image height in pixels."""
+    n_frames: int = 300
+    """Number of frames along the hand-held-like trajectory."""
+    depth_noise_m: float = 0.0
+    """Standard deviation of Gaussian depth noise added per pixel, metres (scaled by depth^2 / 1 m^2... see docs)."""
+    fov_deg: float = 70.0
+    """Horizontal field of view of the virtual camera, degrees."""
+    prefetch: int = 4
+    """Frames rendered ahead in a background thread (0 = render on demand)."""
+
+
+@dataclass
+class TumConfig:
+    preset: str = "auto"
+    """Intrinsics preset: auto (from the folder name), fr1, fr2 or fr3."""
+    max_time_gap_s: float = 0.02
+    """Largest timestamp gap allowed when associating colour, depth and pose."""
+
+
+@dataclass
+class RosbagConfig:
+    rgb_topic: str = ""
+    """Colour image topic (empty = discover by message type and name)."""
+    depth_topic: str = ""
+    """Depth image topic (empty = discover)."""
+    camera_info_topic: str = ""
+    """CameraInfo topic (empty = discover; intrinsics from source.intrinsics when there is none)."""
+    pose_topic: str = ""
+    """PoseStamped / Odometry / TransformStamped topic (empty = discover, else the tf tree)."""
+    world_frame: str = "world"
+    """tf frame that poses are expressed in, when poses come from /tf."""
+    camera_frame: str = ""
+    """tf frame of the camera (empty = the depth image's header.frame_id)."""
+    body_frame: str = ""
+    """Frame the poses describe when it is not the camera optical frame (empty = poses are the camera's)."""
+    T_body_camera: list[float] = field(default_factory=list)
+    """Fixed body->camera transform, 16 numbers row-major (empty = look it up in /tf_static)."""
+    max_time_gap_s: float = 0.03
+    """Largest gap between colour and depth stamps, and how far poses may be extrapolated."""
+    depth_scale: float = 0.001
+    """Metres per unit of 16UC1 depth images."""
+    realtime: bool = False
+    """Play at the bag's rate and take the newest frame when mapping is slower (dropped ones are counted)."""
+
+
+@dataclass
+class SourceConfig:
+    format: str = "auto"
+    """auto | synthetic | replica | scannet | tum | 7scenes | rosbag."""
+    path: str = ""
+    """Dataset folder or bag file (empty = the built-in synthetic scene)."""
+    stride: int = 1
+    """Use every k-th frame."""
+    max_frames: int = 0
+    """Stop after this many frames (0 = all)."""
+    depth_min_m: float = 0.05
+    """Depth below this is treated as invalid."""
+    depth_max_m: float = 10.0
+    """Depth above this is treated as invalid."""
+    downscale: int = 1
+    """Integer factor to shrink colour, depth and intrinsics by (1 = full resolution)."""
+    intrinsics: IntrinsicsConfig = field(default_factory=IntrinsicsConfig)
+    """Camera intrinsics where the data has none (Replica) or to override them."""
+    depth_scale: float = 0.0
+    """Metres per depth unit in PNG files (0 = the format's default)."""
+    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+    """Built-in synthetic scene."""
+    tum: TumConfig = field(default_factory=TumConfig)
+    """TUM RGB-D specific options."""
+    rosbag: RosbagConfig = field(default_factory=RosbagConfig)
+    """ROS 1 / ROS 2 bag specific options."""
+
+
+@dataclass
+class MappingConfig:
+    device: str = "auto"
+    """auto (CUDA when present, else CPU) | cpu | cuda."""
+    voxel_size_m: float = 0.1
+    """Edge of an octree leaf voxel."""
+    truncation_m: float = 0.05
+    """SDF truncation distance tr."""
+    min_points_per_voxel: int = 10
+    """A voxel is allocated only when more than this many depth points fall in it."""
+    expansion: bool = True
+    """Also allocate the neighbour across a face that a voxel's points hug (expanded voxels)."""
+    priors: bool = True
+    """Initialise corner SDF priors by projecting depth (off = zero priors, ablation)."""
+    hash_levels: int = 4
+    """L: number of hash-grid levels."""
+    hash_features: int = 2
+    """F: features per level."""
+    hash_log2_size: int = 19
+    """log2 T: entries per level's hash table."""
+    hash_scale: float = 2.0
+    """Resolution ratio between adjacent levels."""
+    hash_base_resolution_m: float = 0.1
+    """Cell size of the coarsest level (the leaf voxel size by default)."""
+    geo_hidden: int = 64
+    """Width of the geometry decoder's hidden layer."""
+    geo_layers: int = 1
+    """Hidden layers of the geometry decoder."""
+    color_hidden: int = 64
+    """Width of the colour decoder's hidden layers."""
+    color_layers: int = 2
+    """Hidden layers of the colour decoder."""
+    max_iters: int = 10
+    """Largest number of optimisation iterations per frame."""
+    rays_per_iter: int = 4096
+    """Rays sampled per iteration across the current frame and selected keyframes."""
+    step_m: float = 0.01
+    """Distance between samples along a ray inside allocated voxels."""
+    n_keyframes: int = 10
+    """K: keyframes optimised together with the current frame."""
+    keyframe_iou: float = 0.85
+    """Insert a keyframe when IoU(voxels seen now, at the last keyframe) falls below this."""
+    keyframe_max_gap: int = 100
+    """Insert a keyframe at least every this many frames."""
+    keyframe_strategy: str = "coverage"
+    """coverage | random | overlap."""
+    early_ending: bool = True
+    """Stop a frame's optimisation when the loss exceeds its running mean twice in a row."""
+    lr: float = 1e-2
+    """Adam learning rate for priors, hash tables and decoders."""
+    w_rgb: float = 0.5
+    """Weight of the colour L1 loss."""
+    w_depth: float = 1.0
+    """Weight of the depth L1 loss."""
+    w_fs: float = 10.0
+    """Weight of the free-space loss."""
+    w_sdf: float = 50000.0
+    """Weight of the SDF loss inside the truncation band."""
+    mesh_resolution: int = 8
+    """Marching-cubes samples per leaf voxel edge."""
+    chunk_voxels: int = 8
+    """Leaf voxels per mesh-chunk edge (chunks are re-meshed only when touched)."""
+    mesh_every: int = 5
+    """Re-extract changed mesh chunks every this many frames (0 = only at the end)."""
+    seed: int = 0
+    """Seed for ray sampling and parameter initialisation."""
+    threads: int = 0
+    """torch CPU threads (0 = all cores)."""
+
+
+@dataclass
+class EvalConfig:
+    n_points: int = 200_000
+    """Points sampled from each mesh for Acc / Comp."""
+    threshold_m: float = 0.05
+    """Distance under which a ground-truth point counts as completed."""
+    cull_to_observed: bool = True
+    """Keep only ground truth inside what the input frames observed."""
+    n_interpolate: int = 20
+    """Training views rendered for PSNR/SSIM/depth L1 ("interpolate")."""
+    n_extrapolate: int = 20
+    """Novel views away from the trajectory ("extrapolate")."""
+    render_downscale: int = 2
+    """Evaluate renders at 1/k of the input resolution."""
+
+
+@dataclass
+class ViewerConfig:
+    host: str = "127.0.0.1"
+    """Address to bind; 127.0.0.1 keeps the dashboard local."""
+    port: int = 8080
+    """Port of the dashboard."""
+    realtime: bool = False
+    """Map the newest frame whenever the mapper is free instead of every frame."""
+    mesh_update_hz: float = 2.0
+    """Largest rate of mesh updates sent to browsers."""
+    render_width: int = 640
+    """Width of refined novel-view renders (moving renders use a quarter)."""
+    start_paused: bool = False
+    """Open with mapping paused."""
+
+
+@dataclass
+class Config:
+    source: SourceConfig = field(default_factory=SourceConfig)
+    """Where frames come from."""
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    """H2-Mapping parameters (paper defaults)."""
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    """Evaluation against ground truth."""
+    viewer: ViewerConfig = field(default_factory=ViewerConfig)
+    """The live dashboard."""
+    out_dir: str = ""
+    """Output folder of a run (empty = outputs/<source>-<time>)."""
+
+
+# --------------------------------------------------------------------------------------------- docs
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Map each field of dataclass `cls` to the string literal written under it."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs: dict[str, str] = {}
+    for stmt, nxt in zip(body, body[1:], strict=False):
+        if isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name):
+            if isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant):
+                docs[stmt.target.id] = str(nxt.value.value)
+    return docs
+
+
+# ------------------------------------------------------------------------------------------ loading
+
+
+def _closest(key: str, valid: list[str]) -> str:
+    match = difflib.get_close_matches(key, valid, n=1, cutoff=0.4)
+    return f"; did you mean '{match[0]}'?" if match else f"; valid keys: {', '.join(sorted(valid))}"
+
+
+def _coerce(value: Any, typ: Any, where: str) -> Any:
+    origin = typing.get_origin(typ)
+    if typ is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false", "1", "0", "yes", "no", "on", "off"):
+            return value.lower() in ("true", "1", "yes", "on")
+        raise ConfigError(f"{where}: expected true/false, got {value!r}")
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, int | str):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        try:
+            return int(value)
+        except ValueError as e:
+            raise ConfigError(f"{where}: expected an integer, got {value!r}") from e
+    if typ is float:
+        if isinstance(value, bool):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        try:
+            return float(value)
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"{where}: expected a number, got {value!r}") from e
+    if typ is str:
+        if isinstance(value, dict | list):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return "" if value is None else str(value)
+    if origin is list:
+        if isinstance(value, str):
+            value = yaml.safe_load(value)
+        if not isinstance(value, list):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        (item,) = typing.get_args(typ)
+        return [_coerce(v, item, f"{where}[{i}]") for i, v in enumerate(value)]
+    raise ConfigError(f"{where}: unsupported field type {typ}")
+
+
+def _merge(obj: Any, data: dict[str, Any], origin: str, prefix: str = "") -> None:
+    """Write `data` into dataclass `obj` in place, strictly; `origin` names the file or override."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{origin}: '{prefix or '<top>'}' must be a mapping of keys to values, got {data!r}")
+    hints = typing.get_type_hints(type(obj))
+    names = [f.name for f in dataclasses.fields(obj)]
+    for key, value in data.items():
+        dotted = f"{prefix}{key}"
+        if key not in names:
+            raise ConfigError(f"{origin}: unknown key '{dotted}'{_closest(str(key), names)}")
+        current = getattr(obj, key)
+        if dataclasses.is_dataclass(current):
+            _merge(current, value or {}, origin, f"{dotted}.")
+        else:
+            setattr(obj, key, _coerce(value, hints[key], f"{origin}: {dotted}"))
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist; pass an existing YAML file to --config")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML ({e})") from e
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections (source:, mapping:, ...)")
+    return data
+
+
+def apply_file(cfg: Config, path: str | Path) -> Config:
+    """Merge one YAML file into `cfg` (strict: unknown keys are errors naming the file)."""
+    _merge(cfg, load_yaml(path), str(path))
+    return cfg
+
+
+def apply_overrides(cfg: Config, overrides: list[str]) -> Config:
+    """Apply `section.key=value` overrides, e.g. `mapping.max_iters=5`."""
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override '{item}' must look like section.key=value, e.g. mapping.max_iters=5")
+        dotted, raw = item.split("=", 1)
+        parts = dotted.strip().split(".")
+        nested: Any = yaml.safe_load(raw) if raw.strip() else ""
+        for part in reversed(parts):
+            nested = {part: nested}
+        _merge(cfg, nested, f"override '{item}'")
+    return cfg
+
+
+def source_config_file(fmt: str) -> Path | None:
+    """The per-source override file in configs/ for a format, if there is one."""
+    path = CONFIG_DIR / f"{fmt}.yaml"
+    return path if path.is_file() else None
+
+
+def load_config(files: list[str | Path] | None = None, overrides: list[str] | None = None) -> Config:
+    """Defaults <- configs/default.yaml <- each file in order <- dotted overrides."""
+    cfg = Config()
+    default = CONFIG_DIR / "default.yaml"
+    if default.is_file():
+        apply_file(cfg, default)
+    for f in files or []:
+        apply_file(cfg, f)
+    return apply_overrides(cfg, overrides or [])
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def dump_config(cfg: Config, path: str | Path) -> None:
+    """Write the resolved configuration as YAML (loadable again with --config)."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+
+
+def from_dict(data: dict[str, Any]) -> Config:
+    cfg = Config()
+    _merge(cfg, data, "config")
+    return cfg
