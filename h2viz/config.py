@@ -156,6 +156,8 @@ class MappingConfig:
     """Rays sampled per iteration across the current frame and selected keyframes."""
     step_m: float = 0.01
     """Distance between samples along a ray inside allocated voxels."""
+    render_temperature: float = 0.05
+    """tau in the rendering weights sigmoid(s/tau)*sigmoid(-s/tau), s in truncation units."""
     n_keyframes: int = 10
     """K: keyframes optimised together with the current frame."""
     keyframe_iou: float = 0.85
@@ -202,6 +204,16 @@ class EvalConfig:
     """Novel views away from the trajectory ("extrapolate")."""
     render_downscale: int = 2
     """Evaluate renders at 1/k of the input resolution."""
+    cull_margin_m: float = 0.05
+    """Ground truth further than this behind the measured depth of every frame counts as unobserved."""
+    extrapolate_min_offset_m: float = 0.5
+    """Shortest move of an extrapolated camera away from the trajectory camera it starts from."""
+    extrapolate_max_offset_m: float = 1.0
+    """Longest move of an extrapolated camera away from the trajectory camera it starts from."""
+    extrapolate_min_distance_m: float = 0.4
+    """Closest an extrapolated camera may be to any trajectory camera."""
+    seed: int = 0
+    """Seed of mesh point sampling and of extrapolated camera placement."""
 
 
 @dataclass

@@ -119,14 +119,14 @@ class FormatInfo:
 FORMATS: dict[str, FormatInfo] = {
     "synthetic": FormatInfo("synthetic", "h2viz.sources.synthetic", "SyntheticSource", "an empty path"),
     "replica": FormatInfo(
-        "replica", "h2viz.sources.folders", "ReplicaSource", "results/frame000000.jpg + results/depth000000.png + traj.txt"
+        "replica", "h2viz.sources.replica", "ReplicaSource", "results/frame000000.jpg + results/depth000000.png + traj.txt"
     ),
     "scannet": FormatInfo(
-        "scannet", "h2viz.sources.folders", "ScanNetSource", "color/, depth/, pose/ and intrinsic/intrinsic_depth.txt"
+        "scannet", "h2viz.sources.scannet", "ScanNetSource", "color/, depth/, pose/ and intrinsic/intrinsic_depth.txt"
     ),
-    "tum": FormatInfo("tum", "h2viz.sources.folders", "TumSource", "rgb.txt + depth.txt + groundtruth.txt"),
+    "tum": FormatInfo("tum", "h2viz.sources.tum", "TumSource", "rgb.txt + depth.txt + groundtruth.txt"),
     "7scenes": FormatInfo(
-        "7scenes", "h2viz.sources.folders", "SevenScenesSource", "frame-000000.depth.png + frame-000000.pose.txt"
+        "7scenes", "h2viz.sources.sevenscenes", "SevenScenesSource", "frame-000000.depth.png + frame-000000.pose.txt"
     ),
     "rosbag": FormatInfo(
         "rosbag", "h2viz.sources.rosbag", "RosbagSource", "a .bag file, a .mcap/.db3 file or a folder with metadata.yaml"
@@ -177,6 +177,8 @@ def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
         values = np.array(path.read_text().split(), dtype=np.float64)
     except FileNotFoundError as e:
         raise FrameError(f"{path}: file is missing") from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise FrameError(f"{path}: file cannot be read as text ({e})") from e
     except ValueError as e:
         raise FrameError(f"{path}: not a whitespace-separated matrix of numbers") from e
     n = shape[0] * shape[1]

@@ -1,0 +1,170 @@
+"""`h2viz` command line: the only place that prints and exits."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from h2viz.config import Config, apply_file, apply_overrides, field_docs, load_config, source_config_file, to_dict
+from h2viz.errors import H2vizError
+
+FORMAT_CHOICES = ["auto", "synthetic", "replica", "scannet", "tum", "7scenes", "rosbag"]
+
+
+def _source_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", default="", help="dataset folder or bag file (default: the built-in synthetic scene)")
+    p.add_argument("--format", default=None, choices=FORMAT_CHOICES, help="data layout (default: auto-detect)")
+    p.add_argument("--config", action="append", default=[], help="YAML config file (repeatable, later wins)")
+    p.add_argument("--frames", type=int, default=None, help="stop after N frames")
+    p.add_argument("--stride", type=int, default=None, help="use every K-th frame")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override any config field, e.g. mapping.max_iters=5"
+    )
+
+
+def build_config(args: argparse.Namespace) -> Config:
+    """defaults <- configs/default.yaml <- configs/<format>.yaml <- --config files <- flags <- --set."""
+    cfg = load_config()
+    fmt = args.format or "auto"
+    if fmt == "auto":
+        from h2viz.sources.base import detect_format
+
+        fmt = detect_format(args.data)
+    per_source = source_config_file(fmt)
+    if per_source is not None:
+        apply_file(cfg, per_source)
+    for f in args.config:
+        apply_file(cfg, f)
+    cfg.source.path = args.data
+    cfg.source.format = fmt
+    if args.frames is not None:
+        cfg.source.max_frames = args.frames
+    if args.stride is not None:
+        cfg.source.stride = args.stride
+    if getattr(args, "out", None):
+        cfg.out_dir = args.out
+    if getattr(args, "host", None):
+        cfg.viewer.host = args.host
+    if getattr(args, "port", None):
+        cfg.viewer.port = args.port
+    return apply_overrides(cfg, args.set)
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    from h2viz.pipeline import run_map
+
+    cfg = build_config(args)
+    result = run_map(cfg, resume=args.resume, gt_mesh=args.gt_mesh, progress=not args.quiet)
+    print(result.summary())
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from h2viz.viewer.server import run_view
+
+    run_view(build_config(args))
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from h2viz.eval.report import evaluate_mesh_files, format_table, write_metrics
+
+    cfg = load_config(args.config, args.set)
+    if args.points:
+        cfg.eval.n_points = args.points
+    metrics = evaluate_mesh_files(args.mesh, args.gt, cfg.eval)
+    print(format_table(metrics))
+    out = Path(args.out) if args.out else Path(args.mesh).with_name("metrics.json")
+    write_metrics(metrics, out)
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_bag_info(args: argparse.Namespace) -> int:
+    from h2viz.sources.rosbag import bag_info
+
+    cfg = load_config(args.config, args.set)
+    print(bag_info(Path(args.path), cfg.source.rosbag))
+    return 0
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    import yaml
+
+    if args.docs:
+        import dataclasses
+
+        def walk(obj: object, prefix: str) -> None:
+            docs = field_docs(type(obj))
+            for f in dataclasses.fields(obj):  # type: ignore[arg-type]
+                value = getattr(obj, f.name)
+                if dataclasses.is_dataclass(value):
+                    walk(value, f"{prefix}{f.name}.")
+                else:
+                    print(f"{prefix}{f.name} = {value!r}\n    {docs.get(f.name, '')}")
+
+        walk(Config(), "")
+    else:
+        print(yaml.safe_dump(to_dict(load_config(args.config, args.set)), sort_keys=False), end="")
+    return 0
+
+
+def make_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="h2viz", description="Live H2-Mapping of RGB-D frames, in the browser.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("map", help="map a sequence headless and write mesh, checkpoint, stats and metrics")
+    _source_args(p)
+    p.add_argument("--out", default="", help="output folder (default: outputs/<format>-<time>)")
+    p.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint.pt of an earlier run")
+    p.add_argument("--gt-mesh", type=Path, default=None, help="ground-truth mesh for metrics.json")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_map)
+
+    p = sub.add_parser("view", help="start the live dashboard (default: synthetic scene)")
+    _source_args(p)
+    p.add_argument("--host", default=None, help="address to bind (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=None, help="port (default 8080)")
+    p.set_defaults(func=cmd_view)
+
+    p = sub.add_parser("eval", help="Acc / Comp / Comp ratio of a mesh against ground truth")
+    p.add_argument("--mesh", required=True, help="reconstructed mesh (PLY/OBJ/GLB)")
+    p.add_argument("--gt", required=True, help="ground-truth mesh")
+    p.add_argument("--points", type=int, default=0, help="points sampled per mesh (default 200000)")
+    p.add_argument("--out", default="", help="metrics.json path (default: next to --mesh)")
+    p.add_argument("--config", action="append", default=[], help="YAML config file")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("bag-info", help="list a bag's topics and what h2viz would use")
+    p.add_argument("path", help=".bag file, ROS 2 bag folder, .mcap or .db3")
+    p.add_argument("--config", action="append", default=[], help="YAML config file")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
+    p.set_defaults(func=cmd_bag_info)
+
+    p = sub.add_parser("config", help="print the resolved configuration (or every field's documentation)")
+    p.add_argument("--config", action="append", default=[], help="YAML config file")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
+    p.add_argument("--docs", action="store_true", help="list every field with its documentation")
+    p.set_defaults(func=cmd_config)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args))
+    except H2vizError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Neural dense mapping: octree, SDF priors, hash encoding, field, sampling, rendering, optimisation."""

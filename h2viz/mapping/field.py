@@ -1,0 +1,83 @@
+"""The hierarchical hybrid field: sdf(x) = trilinear(corner priors) + MLP_s(hash_s(x)); colour = MLP_c(hash_c(x)).
+
+SDF values are in truncation units (metres / tr). Corner priors live in a plain tensor that grows with the
+octree; the two hash grids and decoders are ordinary modules.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from h2viz.config import MappingConfig
+from h2viz.mapping.encoding import HashGrid
+from h2viz.mapping.octree import VoxelOctree
+
+
+def mlp(d_in: int, hidden: int, layers: int, d_out: int) -> nn.Sequential:
+    """ReLU MLP with `layers` hidden layers of width `hidden`."""
+    mods: list[nn.Module] = []
+    d = d_in
+    for _ in range(layers):
+        mods += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
+        d = hidden
+    mods.append(nn.Linear(d, d_out))
+    return nn.Sequential(*mods)
+
+
+class HybridField(nn.Module):
+    """Octree SDF priors plus residual geometry and colour hash-grid fields."""
+
+    def __init__(self, cfg: MappingConfig) -> None:
+        super().__init__()
+        base = cfg.hash_base_resolution_m or cfg.voxel_size_m
+        grid = dict(n_levels=cfg.hash_levels, n_features=cfg.hash_features, log2_size=cfg.hash_log2_size)
+        self.geo_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale)
+        self.color_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale)
+        self.geo_mlp = mlp(self.geo_grid.output_dim, cfg.geo_hidden, cfg.geo_layers, 1)
+        self.color_mlp = mlp(self.color_grid.output_dim, cfg.color_hidden, cfg.color_layers, 3)
+        with torch.no_grad():  # the residual starts near zero so the priors rule at first
+            last = self.geo_mlp[-1]
+            assert isinstance(last, nn.Linear)
+            last.weight.mul_(0.01)
+            last.bias.zero_()
+        self.voxel_size_m = cfg.voxel_size_m
+        self.use_residual = True
+        self.priors = torch.zeros(0)  # (C,) corner SDF in tr units, grows with the octree
+        self.corner_ids = torch.zeros(0, 8, dtype=torch.long)  # (V,8)
+        self.voxel_origin = torch.zeros(0, 3)  # (V,3) metres, min corner of each voxel
+
+    def sync(self, octree: VoxelOctree) -> None:
+        """Grow priors and voxel tables to match the octree (new corners start at 0)."""
+        dev = self.priors.device
+        n_new = octree.n_corners - self.priors.numel()
+        if n_new > 0:
+            grown = torch.cat([self.priors.detach(), torch.zeros(n_new, device=dev)])
+            self.priors = grown.requires_grad_(self.priors.requires_grad)
+        if octree.n_voxels != self.corner_ids.shape[0]:
+            self.corner_ids = torch.from_numpy(octree.voxel_corners).to(dev)
+            self.voxel_origin = torch.from_numpy(octree.voxel_coords()).to(dev, torch.float32) * self.voxel_size_m
+
+    def prior_sdf(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
+        """Trilinear interpolation of the 8 corner priors of each point's voxel: (N,3), (N,) -> (N,)."""
+        local = ((points - self.voxel_origin[voxel]) / self.voxel_size_m).clamp(0.0, 1.0)  # (N,3)
+        vals = self.priors[self.corner_ids[voxel]]  # (N,8) corner order (x,y,z) bits 4,2,1
+        x, y, z = local[:, 0:1], local[:, 1:2], local[:, 2:3]
+        v = vals.view(-1, 2, 2, 2)  # [x][y][z]
+        vx = v[:, 0] * (1 - x[:, :, None]) + v[:, 1] * x[:, :, None]  # (N,2,2) over (y,z)
+        vy = vx[:, 0] * (1 - y) + vx[:, 1] * y  # (N,2) over z
+        return vy[:, 0] * (1 - z[:, 0]) + vy[:, 1] * z[:, 0]
+
+    def sdf(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
+        """Signed distance in truncation units (N,) at points (N,3) lying in voxels (N,)."""
+        s = self.prior_sdf(points, voxel)
+        if self.use_residual:
+            s = s + self.geo_mlp(self.geo_grid(points))[:, 0]
+        return s
+
+    def color(self, points: torch.Tensor) -> torch.Tensor:
+        """RGB in [0,1] (N,3)."""
+        return torch.sigmoid(self.color_mlp(self.color_grid(points)))
+
+    def forward(self, points: torch.Tensor, voxel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.sdf(points, voxel), self.color(points)

@@ -1,0 +1,50 @@
+"""The four H2-Mapping losses on a batch of rays: colour L1, depth L1, free-space and SDF (truncation band)."""
+
+from __future__ import annotations
+
+import torch
+
+from h2viz.config import MappingConfig
+from h2viz.mapping.rendering import RayRender, segment_sum
+from h2viz.mapping.sampling import Samples
+
+
+def per_ray_mean(values: torch.Tensor, mask: torch.Tensor, samples: Samples) -> torch.Tensor:
+    """Mean over rays that have masked samples of the per-ray mean of `values` (S,) under `mask` (S,)."""
+    m = mask.to(values.dtype)
+    num = segment_sum(values * m, samples.ray, samples.n_rays)
+    cnt = segment_sum(m, samples.ray, samples.n_rays)
+    has = cnt > 0
+    if not bool(has.any()):
+        return values.sum() * 0.0
+    return (num[has] / cnt[has]).mean()
+
+
+def mapping_losses(
+    samples: Samples,
+    sdf: torch.Tensor,
+    render: RayRender,
+    rgb_gt: torch.Tensor,
+    depth_gt: torch.Tensor,
+    cfg: MappingConfig,
+) -> dict[str, torch.Tensor]:
+    """Weighted loss terms and their sum: sdf (S,) in tr units, rgb_gt (R,3) in [0,1], depth_gt (R,) metres."""
+    tr = cfg.truncation_m
+    d = depth_gt[samples.ray]  # (S,)
+    valid = d > 0
+    front = valid & (samples.t < d - tr)
+    band = valid & ~front & (samples.t <= d + tr)
+    fs = per_ray_mean((sdf - 1.0) ** 2, front, samples)
+    sdf_term = per_ray_mean((samples.t + sdf * tr - d) ** 2, band, samples)
+    ok = render.hit & (depth_gt > 0)
+    zero = sdf.sum() * 0.0
+    depth = (render.depth - depth_gt).abs()[ok].mean() if bool(ok.any()) else zero
+    rgb = (render.rgb - rgb_gt).abs()[render.hit].mean() if bool(render.hit.any()) else zero
+    terms = {
+        "rgb": cfg.w_rgb * rgb,
+        "depth": cfg.w_depth * depth,
+        "fs": cfg.w_fs * fs,
+        "sdf": cfg.w_sdf * sdf_term,
+    }
+    terms["total"] = terms["rgb"] + terms["depth"] + terms["fs"] + terms["sdf"]
+    return terms

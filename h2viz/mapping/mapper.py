@@ -1,0 +1,224 @@
+"""The H2-Mapping pipeline: one call of `Mapper.integrate` maps one posed RGB-D frame."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import trimesh
+
+from h2viz.config import MappingConfig
+from h2viz.geometry import backproject
+from h2viz.mapping.field import HybridField
+from h2viz.mapping.keyframes import KeyframeSet
+from h2viz.mapping.meshing import ChunkedMesher, export_mesh, merge_chunks
+from h2viz.mapping.octree import VoxelOctree
+from h2viz.mapping.optim import GrowingAdam
+from h2viz.mapping.priors import PriorInitializer
+from h2viz.mapping.raycast import RenderParams, locate, render_image
+from h2viz.mapping.rays import FrameRays, RayBatch
+from h2viz.mapping.rendering import composite, render_weights
+from h2viz.mapping.losses import mapping_losses
+from h2viz.mapping.sampling import sample_rays
+from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
+
+
+def pick_device(name: str) -> torch.device:
+    """'auto' -> CUDA when present, else CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+class Mapper:
+    """Octree SDF priors + hash-grid residual field, optimised frame by frame with coverage keyframes."""
+
+    def __init__(self, cfg: MappingConfig) -> None:
+        self.cfg = cfg
+        self.device = pick_device(cfg.device)
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)
+        torch.manual_seed(cfg.seed)
+        self.rng = torch.Generator().manual_seed(cfg.seed)
+        self.voxel_size_m = cfg.voxel_size_m
+        self.octree = VoxelOctree(cfg.voxel_size_m, cfg.min_points_per_voxel, cfg.expansion)
+        self.priors = PriorInitializer(cfg.truncation_m, cfg.priors)
+        self.field = HybridField(cfg).to(self.device)
+        self.field.priors = self.field.priors.to(self.device).requires_grad_(cfg.priors)
+        self.optim = self._make_optimiser()
+        self.keyframes = KeyframeSet(cfg.n_keyframes, cfg.keyframe_iou, cfg.keyframe_max_gap, cfg.keyframe_strategy, cfg.seed)
+        self.keyframe_rays: list[FrameRays] = []
+        self.thumbnails: list[np.ndarray] = []
+        self.mesher = ChunkedMesher(cfg.voxel_size_m, cfg.mesh_resolution, cfg.chunk_voxels)
+        self.touched = np.zeros(0, dtype=bool)  # (V,) voxels changed since the last mesh update
+        self.trajectory: list[np.ndarray] = []
+        self.frames_done = 0
+        self.version = 0
+        self.max_depth_m = 0.0
+
+    def _make_optimiser(self) -> GrowingAdam:
+        opt = GrowingAdam(self.cfg.lr)
+        f = self.field
+        if self.cfg.priors:
+            opt.add("priors", lambda: f.priors, sparse=True)
+        opt.add("geo_tables", lambda: f.geo_grid.tables, sparse=True)
+        opt.add("color_tables", lambda: f.color_grid.tables, sparse=True)
+        for name, p in [*f.geo_mlp.named_parameters(prefix="geo"), *f.color_mlp.named_parameters(prefix="color")]:
+            opt.add(name, lambda p=p: p)
+        return opt
+
+    # ----------------------------------------------------------------------------------- pipeline
+    def integrate(self, frame: RgbdFrame) -> FrameStats:
+        """Map one frame; the steps follow the paper."""
+        start = time.perf_counter()
+        rays = FrameRays(frame, self.device)
+        points = backproject(frame.depth_m, frame.K, frame.T_world_camera)  # valid depth -> world points
+        alloc = self.octree.allocate(points)  # voxels with > 10 points (+ expanded neighbours)
+        self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
+        self._init_priors(frame)  # project new corners into the depth image
+        if self.keyframes.should_insert(frame.index, alloc.observed):  # IoU / max-gap rule
+            self._add_keyframe(frame, rays, alloc.observed)
+        selected = self.keyframes.select(alloc.observed)  # coverage-maximising K keyframes
+        iters, losses = self._optimise([rays, *(self.keyframe_rays[i] for i in selected)])  # early ending
+        self.touched[alloc.new_voxels] = True  # new voxels' chunks must be meshed
+        self.trajectory.append(frame.T_world_camera)
+        self.frames_done += 1
+        self.max_depth_m = max(self.max_depth_m, float(frame.depth_m.max(initial=0.0)))
+        if self.cfg.mesh_every > 0 and self.frames_done % self.cfg.mesh_every == 0:
+            self.update_mesh()
+        return FrameStats(
+            index=frame.index,
+            map_time_s=time.perf_counter() - start,
+            iterations=iters,
+            n_voxels=self.octree.n_voxels,
+            n_keyframes=len(self.keyframes),
+            losses=losses,
+        )
+
+    def _grow(self, new_voxels: np.ndarray) -> None:
+        self.field.sync(self.octree)
+        self.priors.grow(self.octree.n_corners, new_voxels)
+        self.touched = np.concatenate([self.touched, np.zeros(self.octree.n_voxels - self.touched.size, bool)])
+
+    @torch.no_grad()
+    def _init_priors(self, frame: RgbdFrame) -> None:
+        cids, vals = self.priors.initialize(self.octree, frame.depth_m, frame.K, frame.T_world_camera)
+        if cids.size:
+            self.field.priors[torch.from_numpy(cids).to(self.device)] = torch.from_numpy(vals).to(self.device)
+
+    def _add_keyframe(self, frame: RgbdFrame, rays: FrameRays, observed: np.ndarray) -> None:
+        self.keyframes.insert(frame.index, observed)
+        self.keyframe_rays.append(rays)
+        h = 72
+        w = max(1, round(frame.width * h / frame.height))
+        self.thumbnails.append(cv2.resize(frame.rgb, (w, h), interpolation=cv2.INTER_AREA))
+
+    def _batch(self, frames: list[FrameRays]) -> RayBatch:
+        n = max(1, self.cfg.rays_per_iter // len(frames))
+        return RayBatch.cat([f.sample(n, self.rng) for f in frames if len(f)])
+
+    def _optimise(self, frames: list[FrameRays]) -> tuple[int, dict[str, float]]:
+        """Up to max_iters Adam steps; stop when the loss exceeds its running mean twice in a row."""
+        history: list[float] = []
+        above = 0
+        terms: dict[str, torch.Tensor] = {}
+        for it in range(self.cfg.max_iters):
+            terms = self._step(self._batch(frames))
+            loss = float(terms["total"])
+            above = above + 1 if history and loss > float(np.mean(history)) else 0
+            history.append(loss)
+            if self.cfg.early_ending and above >= 2:
+                return it + 1, {k: float(v) for k, v in terms.items()}
+        return self.cfg.max_iters, {k: float(v) for k, v in terms.items()}
+
+    def _step(self, batch: RayBatch) -> dict[str, torch.Tensor]:
+        tr = self.cfg.truncation_m
+        samples = sample_rays(self.octree, batch.origins, batch.dirs, batch.depth + tr, self.cfg.step_m, True)
+        if samples.t.numel() == 0:
+            return {"total": torch.zeros(())}
+        sdf, rgb = self.field(samples.points, samples.voxel)
+        render = composite(samples, render_weights(samples, sdf, tr, self.cfg.render_temperature), rgb)
+        terms = mapping_losses(samples, sdf, render, batch.rgb, batch.depth, self.cfg)
+        self.optim.zero_grad()
+        terms["total"].backward()
+        self.optim.step()
+        self.touched[torch.unique(samples.voxel).cpu().numpy()] = True
+        return {k: v.detach() for k, v in terms.items()}
+
+    # ------------------------------------------------------------------------------------- outputs
+    @torch.no_grad()
+    def sdf_m(self, points: np.ndarray) -> np.ndarray:
+        """SDF in metres (N,) at world points (N,3) inside allocated voxels (NaN elsewhere)."""
+        out = np.full(points.shape[0], np.nan, dtype=np.float32)
+        for i in range(0, points.shape[0], 65536):
+            p = torch.from_numpy(np.ascontiguousarray(points[i : i + 65536], dtype=np.float32)).to(self.device)
+            vid = locate(self.octree, p)
+            ok = vid >= 0
+            s = torch.full((p.shape[0],), float("nan"), device=self.device)
+            s[ok] = self.field.sdf(p[ok], vid[ok]) * self.cfg.truncation_m
+            out[i : i + 65536] = s.cpu().numpy()
+        return out
+
+    @torch.no_grad()
+    def color_u8(self, points: np.ndarray) -> np.ndarray:
+        """Colour (N,3) uint8 of the field at world points (N,3)."""
+        parts = []
+        for i in range(0, points.shape[0], 65536):
+            p = torch.from_numpy(np.ascontiguousarray(points[i : i + 65536], dtype=np.float32)).to(self.device)
+            parts.append((self.field.color(p) * 255.0).round().clamp(0, 255).to(torch.uint8).cpu().numpy())
+        return np.concatenate(parts) if parts else np.zeros((0, 3), np.uint8)
+
+    @property
+    def mesh_resolution(self) -> int:
+        return self.mesher.resolution
+
+    @mesh_resolution.setter
+    def mesh_resolution(self, value: int) -> None:
+        self.mesher.resolution = int(value)
+
+    def update_mesh(self) -> None:
+        """Re-mesh the chunks whose voxels changed since the last update."""
+        coords = self.octree.voxel_coords()
+        dirty = self.mesher.chunks_of(coords[self.touched])
+        self.version += 1
+        self.mesher.update(coords, dirty, self.sdf_m, self.color_u8, self.version)
+        self.touched[:] = False
+
+    def mesh_chunks(self) -> dict[tuple[int, int, int], MeshChunk]:
+        return dict(self.mesher.chunks)
+
+    def mesh(self) -> trimesh.Trimesh:
+        """Welded mesh of the whole map (re-meshes what changed first)."""
+        if self.touched.any():
+            self.update_mesh()
+        return merge_chunks(self.mesher.chunks)
+
+    def export_mesh(self, path: Path) -> None:
+        export_mesh(self.mesh(), Path(path))
+
+    def voxel_coords(self) -> np.ndarray:
+        return self.octree.voxel_coords().astype(np.int32)
+
+    def octree_levels(self, level: int) -> np.ndarray:
+        return self.octree.level_coords(level).astype(np.int32)
+
+    def keyframe_infos(self) -> tuple[KeyframeInfo, ...]:
+        return tuple(
+            KeyframeInfo(r.index, r.T_world_camera, r.K, r.shape[1], r.shape[0], thumb, state)
+            for r, thumb, state in zip(self.keyframe_rays, self.thumbnails, self.keyframes.states(), strict=True)
+        )
+
+    def render(self, K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int, mode: str = "rgb") -> np.ndarray:
+        """Render any camera: rgb (H,W,3) [0,1], depth/prior (H,W) metres, normal (H,W,3) [-1,1]."""
+        c = self.cfg
+        params = RenderParams(
+            t_far=max(self.max_depth_m, 1.0) * 1.5 + c.voxel_size_m,
+            step_m=c.step_m,
+            truncation_m=c.truncation_m,
+            temperature=c.render_temperature,
+            band=4.0 * c.voxel_size_m / c.truncation_m if c.priors else None,
+        )
+        return render_image(self.field, self.octree, K, T_world_camera, height, width, mode, params)

@@ -1,0 +1,57 @@
+"""SDF-based volume rendering over ragged samples.
+
+w = sigmoid(s / tau) * sigmoid(-s / tau) with s the SDF in truncation units and tau = `temperature`
+(the truncation distance's value, 0.05, as in the reference implementation, which divides the already
+truncation-normalised SDF by tr once more: a bell a few millimetres wide around the surface). Weights beyond
+the first sign change + tr are zeroed, then normalised per ray.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from h2viz.mapping.sampling import Samples
+
+
+@dataclass
+class RayRender:
+    depth: torch.Tensor  # (R,) weighted mean t, 0 where the ray has no weight
+    rgb: torch.Tensor  # (R,3)
+    weight_sum: torch.Tensor  # (R,) before normalisation
+    hit: torch.Tensor  # (R,) bool: the ray has samples with weight
+
+
+def segment_sum(values: torch.Tensor, ray: torch.Tensor, n_rays: int) -> torch.Tensor:
+    """Sum per ray of values (S,) or (S,C) -> (R,) or (R,C)."""
+    out = values.new_zeros((n_rays, *values.shape[1:]))
+    return out.index_add_(0, ray, values)
+
+
+def first_crossing(t: torch.Tensor, sdf: torch.Tensor, ray: torch.Tensor, n_rays: int) -> torch.Tensor:
+    """t of the first sample with negative SDF on each ray (R,), +inf when none."""
+    t_neg = torch.where(sdf < 0, t, torch.full_like(t, float("inf")))
+    out = torch.full((n_rays,), float("inf"), device=t.device, dtype=t.dtype)
+    return out.scatter_reduce(0, ray, t_neg, reduce="amin")
+
+
+def render_weights(samples: Samples, sdf: torch.Tensor, truncation_m: float, temperature: float) -> torch.Tensor:
+    """Unnormalised weights (S,) with samples beyond the first surface + tr removed."""
+    w = torch.sigmoid(sdf / temperature) * torch.sigmoid(-sdf / temperature)
+    t_cross = first_crossing(samples.t.detach(), sdf.detach(), samples.ray, samples.n_rays)
+    return w * (samples.t <= t_cross[samples.ray] + truncation_m).to(w.dtype)
+
+
+def composite(samples: Samples, weights: torch.Tensor, rgb: torch.Tensor | None) -> RayRender:
+    """Normalised weighted sums of t and colour per ray."""
+    R = samples.n_rays
+    wsum = segment_sum(weights, samples.ray, R)  # (R,)
+    hit = wsum > 1e-8
+    norm = torch.where(hit, wsum, torch.ones_like(wsum))
+    depth = segment_sum(weights * samples.t, samples.ray, R) / norm
+    if rgb is None:
+        color = torch.zeros(R, 3, device=weights.device)
+    else:
+        color = segment_sum(weights[:, None] * rgb, samples.ray, R) / norm[:, None]
+    return RayRender(depth=depth * hit, rgb=color, weight_sum=wsum, hit=hit)

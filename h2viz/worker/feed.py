@@ -1,0 +1,125 @@
+"""The worker's live settings and the frame feed: a reader thread that loads frames ahead of the
+mapper, either every frame in order or, in real-time mode, the newest one at the frames' own rate."""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from h2viz.config import Config
+from h2viz.types import RgbdFrame
+
+if TYPE_CHECKING:
+    from h2viz.sources.base import FrameSource
+
+log = logging.getLogger("h2viz.worker")
+END = object()  # marks the end of the frame stream
+
+
+@dataclass
+class WorkerSettings:
+    """What Commands of kind `set` may change while the worker runs."""
+
+    realtime: bool = False  # map the newest frame, drop the older ones
+    stride: int = 1  # use every k-th frame of the source
+    mesh_every: int = 5  # re-mesh at least every this many frames (0 = by time / at the end only)
+    mesh_update_hz: float = 2.0  # re-mesh at most this long (1/hz s) after a frame was mapped
+    metrics_every: int = 20  # refresh ground-truth metrics every this many frames (0 = at the end)
+    metrics_points: int = 20_000  # surface samples per mesh for the periodic metrics
+
+
+class FrameFeed:
+    """Reads frames on its own thread; every-frame mode queues two ahead, real-time mode plays at
+    the frames' timestamp rate and keeps only the newest unmapped frame (replaced ones are dropped)."""
+
+    def __init__(self, source: FrameSource, settings: WorkerSettings, max_frames: int) -> None:
+        self._source, self._settings, self._max_frames = source, settings, max_frames
+        self._items = list(enumerate(source.keys()))  # (position, key) before stride
+        self._cond = threading.Condition()
+        self._frames: deque[Any] = deque()
+        self._stop = threading.Event()
+        self._hold = threading.Event()  # set while mapping is paused (real-time clock stops)
+        self.dropped = 0
+        self.read = 0  # frames read or skipped so far
+        self._position = 0
+        self._thread = threading.Thread(target=self._run, name="h2viz-frames", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        self._thread.join(timeout=5.0)
+
+    def hold(self, on: bool) -> None:
+        (self._hold.set if on else self._hold.clear)()
+
+    def total(self) -> int:
+        """Frames the stream will have read at the end with the current stride."""
+        stride = max(1, self._settings.stride)
+        remaining = math.ceil(max(0, len(self._items) - self._position) / stride)
+        total = self.read + remaining
+        return min(total, self._max_frames) if self._max_frames > 0 else total
+
+    def take(self, timeout_s: float) -> Any:
+        """The next frame, END when the stream is over, or None when nothing arrived in time."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: bool(self._frames), timeout=timeout_s):
+                return None
+            item = self._frames.popleft()
+            self._cond.notify_all()
+            return item
+
+    def _run(self) -> None:
+        clock: tuple[float, float] | None = None  # (wall, stream) time pair of the last anchor
+        try:
+            while self._position < len(self._items) and not self._stop.is_set():
+                if 0 < self._max_frames <= self.read:
+                    break
+                frame = self._source.get(*self._items[self._position])
+                self._position += max(1, self._settings.stride)
+                self.read += 1
+                if frame is not None:
+                    clock = self._deliver(frame, clock)
+        except Exception:  # a broken source ends the stream; the worker reports it
+            log.exception("reading frames failed; the stream ends here")
+        with self._cond:
+            self._frames.append(END)
+            self._cond.notify_all()
+
+    def _deliver(self, frame: RgbdFrame, clock: tuple[float, float] | None) -> tuple[float, float] | None:
+        if not self._settings.realtime:
+            with self._cond:
+                self._cond.wait_for(lambda: len(self._frames) < 2 or self._stop.is_set())
+                self._frames.append(frame)
+                self._cond.notify_all()
+            return None
+        while self._hold.is_set() and not self._stop.is_set():
+            clock = None
+            self._stop.wait(0.05)
+        if clock is None:
+            clock = (time.monotonic(), frame.timestamp)
+        self._stop.wait(max(0.0, clock[0] + (frame.timestamp - clock[1]) - time.monotonic()))
+        with self._cond:
+            if self._frames and self._frames[-1] is not END:
+                self._frames.pop()
+                self.dropped += 1
+            self._frames.append(frame)
+            self._cond.notify_all()
+        return clock
+
+
+def settings_from_config(cfg: Config) -> WorkerSettings:
+    return WorkerSettings(
+        realtime=cfg.viewer.realtime,
+        stride=max(1, cfg.source.stride),
+        mesh_every=cfg.mapping.mesh_every,
+        mesh_update_hz=cfg.viewer.mesh_update_hz,
+    )

@@ -1,0 +1,331 @@
+"""MappingWorker: the one thread that owns the mapper (all torch state). It maps frames from the
+feed, serves Commands between frames (render bands are interleaved with mapping under a time
+budget) and publishes a frozen MapSnapshot into its LatestSlot after every change."""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from h2viz.config import Config
+from h2viz.errors import H2vizError
+from h2viz.types import Command, FrameStats, MapSnapshot, RgbdFrame
+from h2viz.worker import requests
+from h2viz.worker.feed import END, FrameFeed, WorkerSettings, settings_from_config
+from h2viz.worker.slot import LatestSlot
+
+if TYPE_CHECKING:
+    from h2viz.mapping.mapper import Mapper
+    from h2viz.sources.base import FrameSource
+
+log = logging.getLogger("h2viz.worker")
+MAX_CONSECUTIVE_FAILURES = 3
+COMMANDS = ("pause", "resume", "step", "set", "render", "export", "save")
+
+
+def rss_mb() -> float:
+    """Resident memory of this process in MB (0 when /proc is unavailable)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, ValueError, IndexError):
+        return 0.0
+    return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
+class MappingWorker:
+    """Runs `mapper` over `source` on one background thread; talk to it with `submit` and read
+    its state from `slot` (a LatestSlot of MapSnapshot)."""
+
+    def __init__(
+        self, source: FrameSource, mapper: Mapper, cfg: Config, settings: WorkerSettings | None = None
+    ) -> None:
+        self.source, self.mapper, self.cfg = source, mapper, cfg
+        self.settings = settings or settings_from_config(cfg)
+        self.slot: LatestSlot[MapSnapshot] = LatestSlot()
+        self.mapped_at: dict[int, float] = {}  # frame index -> time.time() when its mapping finished
+        self._feed = FrameFeed(source, self.settings, cfg.source.max_frames)
+        self._commands: queue.Queue[Command] = queue.Queue()
+        self._stop = threading.Event()
+        self._paused = cfg.viewer.start_paused
+        self._finished = False
+        self._steps: deque[Future[Any]] = deque()
+        self._renders: deque[tuple[Command, Any]] = deque()  # (command, band generator)
+        self._stats: list[FrameStats] = []
+        self._poses: list[np.ndarray] = []
+        self._current: RgbdFrame | None = None
+        self._metrics: dict[str, float] = {}
+        self._errors: list[str] = []
+        self._failures = self._consecutive = self._unmeshed = self._version = 0
+        self._mesh_dirty = False
+        self._last_mesh_t = time.monotonic()
+        self._last_map_s = 0.0
+        self._gt: Any = None
+        self._fatal: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="h2viz-mapping", daemon=True)
+
+    # -- public API (any thread) ---------------------------------------------------------------
+    def start(self) -> MappingWorker:
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        """Stop mapping, join the thread and fail the commands nobody will serve."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=timeout_s)
+        self._fail_pending(H2vizError("the mapping worker stopped before serving this request"))
+
+    def submit(self, kind: str, **args: Any) -> Future[Any]:
+        """Queue a Command (kind is one of COMMANDS); the returned Future holds the reply."""
+        cmd = Command(kind, dict(args))
+        if self._fatal is not None or self._stop.is_set():
+            cmd.reply.set_exception(H2vizError(f"mapping is not running ({self._fatal or 'stopped'})"))
+        else:
+            self._commands.put(cmd)
+        return cmd.reply
+
+    @property
+    def errors(self) -> tuple[str, ...]:
+        """Messages of every mapping failure so far, oldest first."""
+        return tuple(self._errors)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def wait_finished(self, timeout_s: float | None = None) -> bool:
+        """Block until the source is exhausted and the final snapshot is published."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        version = 0
+        while deadline is None or time.monotonic() < deadline:
+            version, snap = self.slot.wait_newer(version, 0.2)
+            if (snap is not None and snap.finished) or not self._thread.is_alive():
+                return snap is not None and snap.finished
+        return False
+
+    # -- the thread ----------------------------------------------------------------------------
+    def _run(self) -> None:
+        try:
+            self._gt = self.source.ground_truth_mesh()
+            self._feed.hold(self._paused)
+            self._feed.start()
+            self._publish()
+            while not self._stop.is_set():
+                self._serve_commands(0.05 if self._idle() else 0.0)
+                self._render_slices()
+                if not self._idle():
+                    self._map_next()
+                elif self._mesh_due():
+                    self._remesh()
+                    self._publish()
+        except Exception as e:  # keep the process alive, make the failure visible
+            log.exception("the mapping worker failed")
+            self._fatal = e
+            self._errors.append(f"mapping stopped: {type(e).__name__}: {e}")
+            self._fail_pending(e)
+        finally:
+            self._feed.stop()
+
+    # -- commands ------------------------------------------------------------------------------
+    def _serve_commands(self, timeout_s: float) -> None:
+        try:
+            cmd = self._commands.get(timeout=timeout_s) if timeout_s > 0 else self._commands.get_nowait()
+        except queue.Empty:
+            return
+        while True:
+            try:
+                self._handle(cmd)
+            except Exception as e:  # a bad request fails its own Future, never the worker
+                log.warning("command %s failed: %s", cmd.kind, e)
+                requests.settle(cmd.reply, error=e)
+            try:
+                cmd = self._commands.get_nowait()
+            except queue.Empty:
+                return
+
+    def _handle(self, cmd: Command) -> None:
+        handlers: dict[str, Callable[[dict[str, Any]], Any]] = {
+            "pause": lambda a: self._set_paused(True),
+            "resume": lambda a: self._set_paused(False),
+            "set": self._apply_settings,
+            "export": self._export,
+            "save": lambda a: requests.save_checkpoint(self.mapper, a["path"]),
+        }
+        if cmd.kind == "render":
+            self._renders.append((cmd, requests.render_bands(self.mapper, cmd.args)))
+        elif cmd.kind == "step":
+            self._step(cmd.reply)
+        elif cmd.kind in handlers:
+            requests.settle(cmd.reply, handlers[cmd.kind](cmd.args))
+        else:
+            raise H2vizError(f"unknown command '{cmd.kind}'; use one of {', '.join(COMMANDS)}")
+
+    def _export(self, args: dict[str, Any]) -> bytes:
+        self._remesh()
+        return requests.export_mesh_bytes(self.mapper, str(args.get("format", "ply")))
+
+    def _set_paused(self, paused: bool) -> bool:
+        self._paused = paused
+        self._feed.hold(paused and not self._steps)
+        self._publish()
+        return paused
+
+    def _step(self, reply: Future[Any]) -> None:
+        if self._finished:
+            requests.settle(reply, None)
+            return
+        self._steps.append(reply)
+        self._feed.hold(False)
+
+    def _apply_settings(self, args: dict[str, Any]) -> dict[str, Any]:
+        if requests.apply_settings(self.settings, self.mapper, args):
+            self._mesh_dirty = True
+        return requests.settings_reply(self.settings, self.mapper)
+
+    def _render_slices(self) -> None:
+        """Advance pending renders band by band (round robin) within a time budget that keeps
+        mapping going: about as long as the last frame took to map."""
+        budget = 0.25 if self._idle() else max(0.1, self._last_map_s)
+        deadline = time.perf_counter() + budget
+        while self._renders and time.perf_counter() < deadline:
+            cmd, job = self._renders[0]
+            if cmd.reply.cancelled():
+                self._renders.popleft()
+                continue
+            try:
+                next(job)
+                self._renders.rotate(-1)
+            except StopIteration as done:
+                self._renders.popleft()
+                requests.settle(cmd.reply, done.value)
+            except Exception as e:
+                self._renders.popleft()
+                log.warning("render failed: %s", e)
+                requests.settle(cmd.reply, error=e)
+
+    def _fail_pending(self, error: BaseException) -> None:
+        for cmd, _ in self._renders:
+            requests.settle(cmd.reply, error=error)
+        self._renders.clear()
+        while self._steps:
+            requests.settle(self._steps.popleft(), error=error)
+        while True:
+            try:
+                requests.settle(self._commands.get_nowait().reply, error=error)
+            except queue.Empty:
+                return
+
+    # -- mapping -------------------------------------------------------------------------------
+    def _idle(self) -> bool:
+        return self._finished or (self._paused and not self._steps)
+
+    def _map_next(self) -> None:
+        item = self._feed.take(0.05)
+        if item is END:
+            self._finished = True
+            self._resolve_steps(None)
+            if self._gt is not None:
+                self._refresh_metrics()
+            self._remesh()
+            self._publish()
+        elif item is not None:
+            self._integrate(item)
+
+    def _integrate(self, frame: RgbdFrame) -> None:
+        t0 = time.perf_counter()
+        try:
+            stats = self.mapper.integrate(frame)
+        except Exception as e:
+            self._on_failure(frame, e)
+            return
+        self._last_map_s = time.perf_counter() - t0
+        self.mapped_at[frame.index] = time.time()
+        self._consecutive = 0
+        self._unmeshed += 1
+        self._stats.append(stats)
+        self._poses.append(frame.T_world_camera)
+        self._current = frame
+        every = self.settings.metrics_every
+        if self._gt is not None and every > 0 and len(self._stats) % every == 0:
+            self._refresh_metrics()
+        if self._mesh_due():
+            self._remesh()
+        self._resolve_steps(stats)
+        self._publish()
+
+    def _on_failure(self, frame: RgbdFrame, e: Exception) -> None:
+        log.exception("mapping frame %d failed", frame.index)
+        self._failures += 1
+        self._consecutive += 1
+        self._errors.append(f"frame {frame.index} ({frame.name or 'no name'}): {type(e).__name__}: {e}")
+        if self._consecutive >= MAX_CONSECUTIVE_FAILURES and not self._paused:
+            n = self._consecutive
+            self._errors.append(f"mapping paused after {n} failures in a row; press Resume to retry")
+            self._set_paused(True)
+        self._resolve_steps(None)
+        self._publish()
+
+    def _resolve_steps(self, stats: FrameStats | None) -> None:
+        if self._steps:
+            requests.settle(self._steps.popleft(), stats)
+            self._feed.hold(self._paused and not self._steps)
+
+    def _mesh_due(self) -> bool:
+        if self._unmeshed == 0 and not self._mesh_dirty:
+            return False
+        s = self.settings
+        if self._idle() or self._mesh_dirty or (s.mesh_every > 0 and self._unmeshed >= s.mesh_every):
+            return True
+        return s.mesh_update_hz > 0 and time.monotonic() - self._last_mesh_t >= 1.0 / s.mesh_update_hz
+
+    def _remesh(self) -> None:
+        try:
+            self.mapper.update_mesh()
+        except Exception as e:  # keep mapping; the next re-mesh retries the same chunks
+            log.exception("mesh extraction failed")
+            self._errors.append(f"mesh extraction failed: {type(e).__name__}: {e}")
+        self._unmeshed, self._mesh_dirty, self._last_mesh_t = 0, False, time.monotonic()
+
+    def _refresh_metrics(self) -> None:
+        from h2viz.eval.metrics import mesh_metrics, voxel_mask_fn
+
+        try:
+            self._remesh()
+            mask = voxel_mask_fn(self.mapper.voxel_coords(), self.mapper.voxel_size_m)
+            n, thr = self.settings.metrics_points, self.cfg.eval.threshold_m
+            self._metrics = mesh_metrics(self.mapper.mesh(), self._gt, n, thr, gt_mask_fn=mask)
+        except Exception as e:  # metrics are informative; mapping goes on
+            log.warning("ground-truth metrics failed: %s", e)
+
+    def _publish(self) -> None:
+        m = self.mapper
+        self._version += 1
+        snap = MapSnapshot(
+            version=self._version,
+            frames_done=len(self._stats),
+            frames_total=self._feed.total(),
+            chunks=dict(m.mesh_chunks()),
+            voxel_size_m=float(m.voxel_size_m),
+            voxel_coords=np.asarray(m.voxel_coords(), dtype=np.int32).reshape(-1, 3),
+            keyframes=tuple(m.keyframe_infos()),
+            trajectory=np.asarray(self._poses, dtype=np.float64).reshape(-1, 4, 4),
+            current_frame=self._current,
+            stats=tuple(self._stats),
+            paused=self._paused,
+            finished=self._finished,
+            skipped=len(self.source.skipped) + self._failures,
+            dropped=self._feed.dropped,
+            metrics=dict(self._metrics),
+            memory_mb=rss_mb(),
+        )
+        self.slot.put(snap)

@@ -1,0 +1,120 @@
+"""What the worker does for viewer Commands: novel-view renders cut into row bands (so they can be
+interleaved with mapping), mesh export to bytes, checkpoint saving and live settings changes."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Generator
+from concurrent.futures import Future, InvalidStateError
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from h2viz.errors import H2vizError
+from h2viz.types import RenderMode, check_pose
+from h2viz.worker.feed import WorkerSettings
+
+if TYPE_CHECKING:
+    from h2viz.mapping.mapper import Mapper
+
+RENDER_BAND_PIXELS = 160 * 120  # renders are cut into row bands of about this many pixels
+EXPORT_FORMATS = ("ply", "glb")
+DEPTH_MODES = (RenderMode.DEPTH.value, RenderMode.PRIOR.value)
+
+
+@dataclass(frozen=True)
+class RenderedView:
+    """Reply to a render Command: the image in the requested mode and, on request, its depth."""
+
+    image: np.ndarray  # rgb | normal: (H,W,3) float32; depth | prior: (H,W) float32 metres
+    depth_m: np.ndarray | None  # (H,W) float32 z-depth, 0 = nothing; None unless with_depth
+    mode: str
+    seconds: float  # mapper time spent on this render
+
+
+def settle(future: Future[Any], value: Any = None, error: BaseException | None = None) -> None:
+    """Resolve `future` unless it was cancelled meanwhile."""
+    try:
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(value)
+    except InvalidStateError:
+        pass
+
+
+def render_bands(mapper: Mapper, args: dict[str, Any]) -> Generator[None, None, RenderedView]:
+    """Render args K, T_world_camera, height, width, mode (and with_depth) one row band per step."""
+    K = np.asarray(args["K"], dtype=np.float64).reshape(3, 3)
+    T_world_camera = check_pose(args["T_world_camera"], "render request")
+    height, width = int(args["height"]), int(args["width"])
+    mode = str(args.get("mode", RenderMode.RGB.value))
+    modes = [m.value for m in RenderMode]
+    if mode not in modes:
+        raise H2vizError(f"render: unknown mode '{mode}'; use one of {', '.join(modes)}")
+    if not (0 < height <= 8192 and 0 < width <= 8192):
+        raise H2vizError(f"render: image size {width}x{height} must be between 1 and 8192 pixels a side")
+    with_depth = bool(args.get("with_depth", False))
+    rows = max(1, RENDER_BAND_PIXELS // width)
+    images: list[np.ndarray] = []
+    depths: list[np.ndarray] = []
+    spent = 0.0
+    for r0 in range(0, height, rows):
+        t0 = time.perf_counter()
+        h = min(rows, height - r0)
+        K_band = K.copy()
+        K_band[1, 2] -= r0  # the band is the image rows [r0, r0 + h)
+        images.append(np.asarray(mapper.render(K_band, T_world_camera, h, width, mode), dtype=np.float32))
+        if with_depth:
+            own = mode in DEPTH_MODES
+            depth = images[-1] if own else mapper.render(K_band, T_world_camera, h, width, "depth")
+            depths.append(np.asarray(depth, dtype=np.float32))
+        spent += time.perf_counter() - t0
+        yield
+    depth_m = np.concatenate(depths, axis=0) if with_depth else None
+    return RenderedView(np.concatenate(images, axis=0), depth_m, mode, spent)
+
+
+def export_mesh_bytes(mapper: Mapper, fmt: str) -> bytes:
+    """The welded map mesh as PLY or GLB bytes."""
+    fmt = fmt.lower().lstrip(".")
+    if fmt not in EXPORT_FORMATS:
+        raise H2vizError(f"export: unknown mesh format '{fmt}'; use one of {', '.join(EXPORT_FORMATS)}")
+    data = mapper.mesh().export(file_type=fmt)
+    return data if isinstance(data, bytes) else str(data).encode()
+
+
+def save_checkpoint(mapper: Mapper, path: str | Path) -> str:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mapper.save_checkpoint(path)
+    return str(path)
+
+
+def apply_settings(settings: WorkerSettings, mapper: Mapper, args: dict[str, Any]) -> bool:
+    """Write `args` into `settings` (and mesh_resolution into the mapper); True when the mesh
+    must be re-extracted. Unknown keys or bad values raise H2vizError before anything changes."""
+    types = {f.name: type(getattr(settings, f.name)) for f in fields(settings)}
+    valid = sorted([*types, "mesh_resolution"])
+    for key in args:
+        if key not in valid:
+            raise H2vizError(f"set: unknown setting '{key}'; valid settings: {', '.join(valid)}")
+    try:
+        values = {k: (int(v) if k == "mesh_resolution" else types[k](v)) for k, v in args.items()}
+    except (TypeError, ValueError) as e:
+        raise H2vizError(f"set: bad value in {args} ({e})") from e
+    if values.get("stride", 1) < 1 or values.get("mesh_resolution", 2) < 2:
+        raise H2vizError(f"set: stride must be >= 1 and mesh_resolution >= 2, got {args}")
+    remesh = "mesh_resolution" in values and values["mesh_resolution"] != mapper.mesh_resolution
+    for key, value in values.items():
+        if key == "mesh_resolution":
+            mapper.mesh_resolution = value
+        else:
+            setattr(settings, key, value)
+    return remesh
+
+
+def settings_reply(settings: WorkerSettings, mapper: Mapper) -> dict[str, Any]:
+    return {**asdict(settings), "mesh_resolution": int(mapper.mesh_resolution)}

@@ -1,0 +1,85 @@
+"""Octree allocation: the > N points rule, expansion across faces, shared corners, lookup, coarse levels."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from h2viz.mapping.octree import CORNER_OFFSETS, KeyIndex, VoxelOctree, decode, encode
+
+
+def cloud_in_voxel(coord: tuple[int, int, int], n: int, lo: float = 0.3, hi: float = 0.7, vs: float = 0.1) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    return (np.array(coord) + rng.uniform(lo, hi, size=(n, 3))) * vs
+
+
+def test_encode_decode_round_trip_negative_and_large() -> None:
+    c = np.array([[0, 0, 0], [-5, 7, -1_000_000], [999_999, -999_999, 3]])
+    assert np.array_equal(decode(encode(c)), c)
+    assert np.array_equal(encode(torch.from_numpy(c)).numpy(), encode(c))
+
+
+def test_key_index_ids_are_stable_and_lookup_misses() -> None:
+    idx = KeyIndex()
+    a = idx.add(np.array([30, 10, 20]))
+    b = idx.add(np.array([20, 40, 10]))
+    assert sorted(a.tolist()) == [0, 1, 2]
+    assert b[0] == a[2] and b[2] == a[1] and b[1] == 3
+    assert idx.lookup(np.array([40, 99])).tolist() == [3, -1]
+    assert idx.lookup_torch(torch.tensor([10, 5])).tolist() == [a[1], -1]
+    again = KeyIndex.from_keys(idx.keys)
+    assert np.array_equal(again.lookup(idx.keys), np.arange(4))
+
+
+def test_more_than_min_points_rule() -> None:
+    tree = VoxelOctree(0.1, min_points=10, expansion=False)
+    pts = np.concatenate([cloud_in_voxel((0, 0, 0), 10), cloud_in_voxel((2, 0, 0), 11)])
+    alloc = tree.allocate(pts)
+    assert tree.n_voxels == 1
+    assert decode(tree.voxels.keys).tolist() == [[2, 0, 0]]
+    assert alloc.new_voxels.tolist() == [0]
+
+
+def test_expansion_allocates_the_neighbour_across_the_hugged_face() -> None:
+    tree = VoxelOctree(0.1, min_points=10, expansion=True)
+    pts = cloud_in_voxel((0, 0, 0), 50, lo=0.3, hi=0.7)
+    pts[:, 2] = 0.095  # all points hug the +z face (mean at 95 % of the voxel)
+    tree.allocate(pts)
+    assert sorted(map(tuple, tree.voxel_coords().tolist())) == [(0, 0, 0), (0, 0, 1)]
+    pts[:, 2] = 0.005
+    tree2 = VoxelOctree(0.1, expansion=True)
+    tree2.allocate(pts)
+    assert sorted(map(tuple, tree2.voxel_coords().tolist())) == [(0, 0, -1), (0, 0, 0)]
+    tree3 = VoxelOctree(0.1, expansion=False)
+    tree3.allocate(pts)
+    assert tree3.n_voxels == 1
+
+
+def test_corners_are_shared_between_neighbours() -> None:
+    tree = VoxelOctree(0.1, min_points=0, expansion=False)
+    tree.allocate(np.concatenate([cloud_in_voxel((0, 0, 0), 5), cloud_in_voxel((1, 0, 0), 5)]))
+    assert tree.n_voxels == 2 and tree.n_corners == 12
+    coords = tree.voxel_coords()
+    cc = tree.corner_coords()
+    for v in range(2):
+        assert np.array_equal(cc[tree.voxel_corners[v]], coords[v] + CORNER_OFFSETS)
+
+
+def test_allocation_is_incremental_and_observed_lists_seen_voxels() -> None:
+    tree = VoxelOctree(0.1, min_points=10, expansion=False)
+    tree.allocate(cloud_in_voxel((0, 0, 0), 20))
+    alloc = tree.allocate(np.concatenate([cloud_in_voxel((0, 0, 0), 20), cloud_in_voxel((-3, 1, 0), 20)]))
+    assert tree.n_voxels == 2
+    assert alloc.new_voxels.tolist() == [1]
+    assert sorted(alloc.observed.tolist()) == [0, 1]
+
+
+def test_lookup_points_and_levels() -> None:
+    tree = VoxelOctree(0.1, min_points=0, expansion=False)
+    tree.allocate(np.concatenate([cloud_in_voxel(c, 3) for c in [(0, 0, 0), (1, 1, 1), (-1, 0, 0), (5, 0, 0)]]))
+    ids = tree.lookup_points(torch.tensor([[0.05, 0.05, 0.05], [-0.05, 0.05, 0.05], [0.25, 0.0, 0.0]]))
+    coords = tree.voxel_coords()
+    assert coords[ids[0]].tolist() == [0, 0, 0] and coords[ids[1]].tolist() == [-1, 0, 0] and ids[2] == -1
+    lvl1 = {tuple(c) for c in tree.level_coords(1).tolist()}
+    assert lvl1 == {(0, 0, 0), (-1, 0, 0), (2, 0, 0)}
+    assert {tuple(c) for c in tree.level_coords(3).tolist()} == {(0, 0, 0), (-1, 0, 0)}

@@ -1,0 +1,72 @@
+"""SDF priors by projection: exact on a plane, the sqrt(6) voxel rule, write-once corners and retries."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from h2viz.geometry import backproject, look_at
+from h2viz.mapping.octree import VoxelOctree
+from h2viz.mapping.priors import PriorInitializer
+
+K = np.array([[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]])
+
+
+def plane_depth(T_world_camera: np.ndarray, z_plane: float = 0.0, h: int = 120, w: int = 160) -> np.ndarray:
+    """Depth image of the horizontal plane z = z_plane."""
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    d_w = d_cam @ T_world_camera[:3, :3].T
+    t = (z_plane - T_world_camera[2, 3]) / d_w[..., 2]
+    return np.where(t > 0, t, 0).astype(np.float32)
+
+
+def test_priors_of_a_fronto_parallel_plane_are_exact() -> None:
+    T = look_at(np.array([0.03, 0.02, 1.0]), np.array([0.03, 0.02, 0.0]), up=np.array([0.0, 1.0, 0.0]))
+    depth = plane_depth(T)
+    tree = VoxelOctree(0.1, min_points=10, expansion=True)
+    alloc = tree.allocate(backproject(depth, K, T))
+    init = PriorInitializer(0.05)
+    init.grow(tree.n_corners, alloc.new_voxels)
+    cids, vals = init.initialize(tree, depth, K, T)
+    assert cids.size > 50
+    corners = tree.corner_coords()[cids] * 0.1
+    # camera looks straight down: D(u) - z = height of the corner above the plane
+    np.testing.assert_allclose(vals * 0.05, corners[:, 2], atol=1e-4)
+    # write once: the same frame again writes nothing
+    again, _ = init.initialize(tree, depth, K, T)
+    assert again.size == 0
+
+
+def test_voxels_outside_the_view_wait_and_are_retried() -> None:
+    T = look_at(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.0]), up=np.array([0.0, 1.0, 0.0]))
+    depth = plane_depth(T)
+    tree = VoxelOctree(0.1, min_points=10, expansion=False)
+    alloc = tree.allocate(backproject(depth, K, T))
+    init = PriorInitializer(0.05)
+    init.grow(tree.n_corners, alloc.new_voxels)
+    T_away = look_at(np.array([5.0, 0.0, 1.0]), np.array([5.0, 0.0, 0.0]), up=np.array([0.0, 1.0, 0.0]))
+    cids, _ = init.initialize(tree, plane_depth(T_away), K, T_away)
+    assert cids.size == 0 and init.pending.size == tree.n_voxels
+    cids, _ = init.initialize(tree, depth, K, T)
+    assert cids.size > 0 and init.pending.size < tree.n_voxels
+
+
+def test_sqrt6_rule_rejects_occluded_corners() -> None:
+    T = look_at(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.0]), up=np.array([0.0, 1.0, 0.0]))
+    tree = VoxelOctree(0.1, min_points=0, expansion=False)
+    deep = np.array([[0.02, 0.02, -0.45], [0.03, 0.03, -0.42]])  # voxel 0.4-0.5 m below the plane
+    alloc = tree.allocate(deep)
+    init = PriorInitializer(0.05)
+    init.grow(tree.n_corners, alloc.new_voxels)
+    cids, _ = init.initialize(tree, plane_depth(T), K, T)
+    assert cids.size == 0  # |D - z| = 0.4 m > sqrt(6) * 0.1 m
+
+
+def test_disabled_priors_write_nothing() -> None:
+    T = look_at(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.0]), up=np.array([0.0, 1.0, 0.0]))
+    depth = plane_depth(T)
+    tree = VoxelOctree(0.1)
+    alloc = tree.allocate(backproject(depth, K, T))
+    init = PriorInitializer(0.05, enabled=False)
+    init.grow(tree.n_corners, alloc.new_voxels)
+    assert init.initialize(tree, depth, K, T)[0].size == 0
