@@ -84,6 +84,8 @@ class RosbagConfig:
     """Fixed body->camera transform, 16 numbers row-major (empty = look it up in /tf_static)."""
     max_time_gap_s: float = 0.03
     """Largest gap between colour and depth stamps, and how far poses may be extrapolated."""
+    max_pose_gap_s: float = 0.5
+    """Largest interval between two pose samples that a frame's pose is interpolated across."""
     depth_scale: float = 0.001
     """Metres per unit of 16UC1 depth images."""
     realtime: bool = False

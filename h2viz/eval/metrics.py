@@ -200,7 +200,9 @@ def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> fl
 
 def ssim(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
     """SSIM of float images in [0,1] ((H,W) or (H,W,C), at least 7x7): the full SSIM map (7x7
-    windows, data_range 1) averaged over masked pixels and channels; NaN for an empty mask."""
+    windows, data_range 1) averaged over masked pixels and channels; NaN for an empty mask.
+    Outside the mask `pred` is replaced by `gt` first, so that unmeasured pixels do not lower the
+    score of the windows around them."""
     _check_same_shape(pred, gt, "SSIM")
     valid = _valid_mask(gt.shape, mask)
     if not valid.any():
@@ -208,9 +210,11 @@ def ssim(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> fl
     if min(gt.shape[:2]) < 7:
         raise EvalError(f"SSIM needs images of at least 7x7 pixels, got {gt.shape[:2]}; render larger")
     channel_axis = -1 if gt.ndim == 3 else None
+    gt = np.asarray(gt, dtype=np.float64)
+    pred = np.where(valid if gt.ndim == 2 else valid[..., None], np.asarray(pred, dtype=np.float64), gt)
     _, smap = structural_similarity(
-        np.asarray(pred, dtype=np.float64),
-        np.asarray(gt, dtype=np.float64),
+        pred,
+        gt,
         channel_axis=channel_axis,
         data_range=1.0,
         full=True,

@@ -63,8 +63,10 @@ def extrapolate_views(
        world up (weight in [-0.5, 1]), backwards (horizontal, [0, 1]) and sideways ([-1, 1]), drawn
        from `seed`;
     4. an (eye, target) pair is valid when the eye lies inside the scene's bounding box shrunk by
-       `margin_m` (grown to hold the trajectory), is >= `min_distance_m` from every trajectory
-       camera, >= 0.3 m from the target and, with scene points, has a clear line of sight to it;
+       `margin_m` (grown to hold the trajectory; on sides where the trajectory is outside the scene's
+       bounds, as around a scanned object, up to offset_m[1] beyond it), is >= `min_distance_m` from
+       every trajectory camera, >= 0.3 m from the target and, with scene points, has a clear line
+       of sight to it;
     5. the first valid pair (central target first) gives the view (`look_at`, `up` = world up,
        estimated from the trajectory when None); if none is valid, the pair meeting every other rule
        that is furthest from the trajectory is used and a warning is logged.
@@ -77,7 +79,7 @@ def extrapolate_views(
         raise EvalError(f"extrapolated views need scene points (P,3) or bounds (2,3), got {scene.shape}")
     up = estimate_up(poses) if up is None else np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     points = None if scene.shape == (2, 3) else scene
-    lo, hi = _allowed_box(poses[:, :3, 3], scene, margin_m)
+    lo, hi = _allowed_box(poses[:, :3, 3], scene, margin_m, offset_m[1])
     tree = cKDTree(points) if points is not None else None
     rng = np.random.default_rng(seed)
     base = interpolate_views(poses, n)
@@ -91,13 +93,18 @@ def extrapolate_views(
     return views
 
 
-def _allowed_box(positions: np.ndarray, scene: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """The scene's bounding box shrunk by the margin (to its centre at most), grown to hold every
-    trajectory camera (object scans are filmed from outside the object's box)."""
-    lo, hi = scene.min(axis=0), scene.max(axis=0)
-    shrink = np.minimum(margin_m, (hi - lo) / 2.0)
-    lo, hi = lo + shrink, hi - shrink
-    return np.minimum(lo, positions.min(axis=0)), np.maximum(hi, positions.max(axis=0))
+def _allowed_box(
+    positions: np.ndarray, scene: np.ndarray, margin_m: float, reach_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where novel eyes may go: per axis side, the scene's bounds shrunk by the margin (to the centre
+    at most) and grown to hold the trajectory; where the trajectory lies outside the scene's bounds
+    (an object filmed from outside), up to `reach_m` beyond the trajectory instead."""
+    scene_lo, scene_hi = scene.min(axis=0), scene.max(axis=0)
+    shrink = np.minimum(margin_m, (scene_hi - scene_lo) / 2.0)
+    pos_lo, pos_hi = positions.min(axis=0), positions.max(axis=0)
+    lo = np.where(pos_lo < scene_lo, pos_lo - reach_m, np.minimum(scene_lo + shrink, pos_lo))
+    hi = np.where(pos_hi > scene_hi, pos_hi + reach_m, np.maximum(scene_hi - shrink, pos_hi))
+    return lo, hi
 
 
 def _targets(

@@ -114,7 +114,9 @@ class HashGrid(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """Features (N, L*F) of world points x (N,3) in metres, levels coarse to fine."""
         if x.ndim != 2 or x.shape[1] != 3:
-            raise H2vizError(f"HashGrid expects points shaped (N,3), got {tuple(x.shape)}; reshape to (-1, 3).")
+            raise H2vizError(
+                f"HashGrid expects points shaped (N,3), got {tuple(x.shape)}; reshape to (-1, 3)."
+            )
         return self._encode(x, self.tables, self.cell_sizes_m)
 
     def corner_indices(self, x: Tensor) -> Tensor:
@@ -126,7 +128,9 @@ class HashGrid(nn.Module):
 def _check_args(n_levels: int, n_features: int, log2_size: int, base_cell_m: float, scale: float) -> None:
     """Raise ConfigError for hash-grid sizes that cannot work."""
     if n_levels < 1 or n_features < 1:
-        raise ConfigError(f"hash grid: hash_levels ({n_levels}) and hash_features ({n_features}) must be >= 1.")
+        raise ConfigError(
+            f"hash grid: hash_levels ({n_levels}) and hash_features ({n_features}) must be >= 1."
+        )
     if not 1 <= log2_size <= 30:
         raise ConfigError(f"hash grid: hash_log2_size must be in [1, 30], got {log2_size}.")
     if not base_cell_m > 0 or not scale >= 1:

@@ -9,6 +9,7 @@ bitmap words that step newly covers.
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 import numpy as np
@@ -62,65 +63,82 @@ def _ranges(starts: np.ndarray, lens: np.ndarray) -> np.ndarray:
 
 
 class _CoverageBits:
-    """Keyframe x voxel incidence as compressed bitmaps, the covered voxels and every keyframe's gain."""
+    """Keyframe x voxel incidence as compressed bitmaps, the covered voxels, and per keyframe an upper
+    bound of its gain (uncovered voxels) that is exact where `exact` says so (lazy greedy)."""
 
     def __init__(self) -> None:
         self.word_idx = np.zeros(0, np.int64)  # (E,) word index of every bitmap entry, row by row
         self.words = np.zeros(0, np.uint64)  # (E,) bits of every entry
-        self.row = np.zeros(0, np.int64)  # (E,) keyframe position of every entry
         self.row_start = np.zeros(1, np.int64)  # (n+1,) first entry of each keyframe
-        self.by_word = np.zeros(0, np.int64)  # (E,) entry ids sorted by word index
-        self.by_word_idx = np.zeros(0, np.int64)  # (E,) their (sorted) word indices
         self.covered = np.zeros(0, np.uint64)  # (ceil(U/64),) bits of covered voxels
+        self.n_covered = 0
         self.sizes = np.zeros(0, np.int64)  # (n,) voxels per keyframe
-        self.gains = np.zeros(0, np.int64)  # (n,) still-uncovered voxels per keyframe
+        self.bound = np.zeros(0, np.int64)  # (n,) >= still-uncovered voxels per keyframe
+        self.exact = np.zeros(0, bool)  # (n,) bound equals the gain
 
     def add_row(self, dense: np.ndarray, n_dense: int) -> None:
         """Append a keyframe given its dense voxel indices; the universe now has `n_dense` voxels."""
         idx, bits = _to_words(dense)
         n_words = (n_dense + 63) // 64
         self.covered = np.concatenate([self.covered, np.zeros(n_words - self.covered.size, np.uint64)])
-        first = self.words.size
-        pos = np.searchsorted(self.by_word_idx, idx, side="right")
-        self.by_word = np.insert(self.by_word, pos, np.arange(first, first + idx.size))
-        self.by_word_idx = np.insert(self.by_word_idx, pos, idx)
         self.word_idx = np.concatenate([self.word_idx, idx])
         self.words = np.concatenate([self.words, bits])
-        self.row = np.concatenate([self.row, np.full(idx.size, self.sizes.size, np.int64)])
         self.row_start = np.append(self.row_start, self.words.size)
-        gain = int(np.bitwise_count(bits & ~self.covered[idx]).sum())
         self.sizes = np.append(self.sizes, dense.size)
-        self.gains = np.append(self.gains, gain)
+        self.bound = np.append(self.bound, int(np.bitwise_count(bits & ~self.covered[idx]).sum()))
+        self.exact = np.append(self.exact, True)
 
-    def counts(self, mask: np.ndarray) -> np.ndarray:
-        """(n,) number of voxels of each keyframe whose bit is set in the word mask (ceil(U/64),)."""
-        per_entry = np.bitwise_count(self.words & mask[self.word_idx]).astype(np.int64)  # (E,)
-        cum = np.r_[0, np.cumsum(per_entry)]
-        return cum[self.row_start[1:]] - cum[self.row_start[:-1]]
+    def counts(self, mask: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Per keyframe in `rows` (default: all), how many of its voxels are set in the word mask."""
+        if rows is None:
+            per_entry = np.bitwise_count(self.words & mask[self.word_idx])  # (E,)
+            ends = self.row_start
+        else:
+            lens = self.row_start[rows + 1] - self.row_start[rows]
+            ent = _ranges(self.row_start[rows], lens)  # (E',) entries of those rows
+            per_entry = np.bitwise_count(self.words[ent] & mask[self.word_idx[ent]])
+            ends = np.concatenate([[0], np.cumsum(lens)])
+        cum = np.concatenate([[0], np.cumsum(per_entry, dtype=np.int64)])
+        return cum[ends[1:]] - cum[ends[:-1]]
+
+    def best(self, allowed: np.ndarray) -> int | None:
+        """The allowed keyframe with the largest gain (the earliest among ties), None if all gains are 0.
+        Stale bounds are refreshed only for keyframes that could still beat the best exact one."""
+        batch, pos = 64, np.arange(allowed.size)
+        for attempt in itertools.count():
+            ub = np.where(allowed, self.bound, 0)  # (n,)
+            ex = allowed & self.exact
+            g = int(ub[ex].max()) if ex.any() else 0
+            j = int(np.flatnonzero(ex & (ub == g))[0]) if g > 0 else allowed.size
+            threat = allowed & ~self.exact & ((ub > g) | ((ub == g) & (pos < j)))
+            if not threat.any():
+                return j if g > 0 else None
+            rows = np.flatnonzero(threat)
+            if attempt > 0 and rows.size * 4 > allowed.size:  # many contenders: refresh everything
+                self.set_covered(self.covered)
+                continue
+            rows = rows[np.lexsort((rows, -ub[rows]))[:batch]]  # the highest bounds first
+            self.bound[rows] = self.sizes[rows] - self.counts(self.covered, rows)
+            self.exact[rows] = True
+            batch *= 4
+        raise AssertionError("unreachable")
 
     def cover(self, j: int) -> None:
-        """Mark every voxel of keyframe `j` covered and lower the gains of all keyframes sharing them."""
+        """Mark every voxel of keyframe `j` covered; other bounds become stale (gains only fall)."""
         s, e = self.row_start[j], self.row_start[j + 1]
         idx = self.word_idx[s:e]
         new = self.words[s:e] & ~self.covered[idx]  # newly covered bits per word
-        keep = new != 0
-        idx, new = idx[keep], new[keep]
         self.covered[idx] |= new
-        lo = np.searchsorted(self.by_word_idx, idx, side="left")
-        lens = np.searchsorted(self.by_word_idx, idx, side="right") - lo
-        ent = self.by_word[_ranges(lo, lens)]  # every entry on a newly covered word
-        lost = np.bitwise_count(self.words[ent] & np.repeat(new, lens))
-        self.gains -= np.bincount(self.row[ent], weights=lost, minlength=self.gains.size).astype(np.int64)
+        self.n_covered += int(np.bitwise_count(new).sum())
+        self.bound[j] = 0
+        self.exact = self.bound == 0
 
-    def reset(self) -> None:
-        """Mark every voxel uncovered."""
-        self.covered[:] = 0
-        self.gains = self.sizes.copy()
-
-    def set_covered(self, mask: np.ndarray) -> None:
-        """Replace the covered bits by `mask` and recompute every gain."""
-        self.covered = mask.astype(np.uint64, copy=True)
-        self.gains = self.sizes - self.counts(self.covered)
+    def set_covered(self, mask: np.ndarray | None = None) -> None:
+        """Replace the covered bits by `mask` (default: none covered) and make every bound exact."""
+        self.covered = np.zeros_like(self.covered) if mask is None else mask.astype(np.uint64, copy=True)
+        self.n_covered = int(np.bitwise_count(self.covered).sum())
+        self.bound = self.sizes - self.counts(self.covered) if mask is not None else self.sizes.copy()
+        self.exact = np.ones(self.sizes.size, bool)
 
 
 class KeyframeSet:
@@ -234,10 +252,9 @@ class KeyframeSet:
 
     def _select_coverage(self, allowed: np.ndarray) -> list[int]:
         picks: list[int] = []
-        while len(picks) < self.k and allowed.size:
-            gains = np.where(allowed, self._bits.gains, 0)  # (n,)
-            j = int(np.argmax(gains))  # the earliest of the largest gains
-            if gains[j] <= 0:
+        while len(picks) < self.k:
+            j = self._bits.best(allowed)
+            if j is None:
                 break
             self._mark(j)
             allowed[j] = False
@@ -259,9 +276,9 @@ class KeyframeSet:
         """Cover keyframe j's voxels in the current round; complete the round when nothing is left."""
         self._bits.cover(j)
         self._round_member[j] = True
-        if not np.any(self._bits.gains > 0):
+        if self._bits.n_covered == self._known.size:
             self.rounds_completed += 1
-            self._bits.reset()
+            self._bits.set_covered(None)
             self._round_member[:] = False
 
     # -- inspection --------------------------------------------------------------------------------
@@ -282,7 +299,7 @@ class KeyframeSet:
     def coverage_fraction(self) -> float:
         """Share of the keyframes' voxels covered in the current round."""
         total = self._known.size
-        return float(np.bitwise_count(self._bits.covered).sum()) / total if total else 0.0
+        return self._bits.n_covered / total if total else 0.0
 
     def voxel_ids(self, position: int) -> np.ndarray:
         """Sorted unique (read-only) voxel ids observed by the keyframe at `position`."""

@@ -182,7 +182,7 @@ class Mapper:
     def update_mesh(self) -> None:
         """Re-mesh the chunks whose voxels changed since the last update."""
         coords = self.octree.voxel_coords()
-        dirty = self.mesher.chunks_of(coords[self.touched])
+        dirty = self.mesher.chunks_of(coords[self.touched], halo=True)
         self.version += 1
         self.mesher.update(coords, dirty, self.sdf_m, self.color_u8, self.version)
         self.touched[:] = False

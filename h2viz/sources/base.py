@@ -96,13 +96,23 @@ class FrameSource(ABC):
         if s > 1:
             h, w = depth.shape[0] // s, depth.shape[1] // s
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-            depth = np.ascontiguousarray(depth[s // 2 :: s, s // 2 :: s][:h, :w])
+            depth = shrink_depth(depth, s)
             K = K.copy()
             K[0, 0] /= s
             K[1, 1] /= s
             K[0, 2] = (K[0, 2] + 0.5) / s - 0.5
             K[1, 2] = (K[1, 2] + 0.5) / s - 0.5
         return replace(frame, rgb=rgb, depth_m=depth.astype(np.float32), K=K)
+
+
+def shrink_depth(depth_m: np.ndarray, s: int) -> np.ndarray:
+    """Depth (H,W) shrunk by s: the mean of each s x s block whose pixels are all valid and agree within 5 %
+    (so no flying pixels appear across depth edges), else 0; it is the block centre's depth, like INTER_AREA colour."""
+    h, w = depth_m.shape[0] // s, depth_m.shape[1] // s
+    blocks = depth_m[: h * s, : w * s].reshape(h, s, w, s)  # (h,s,w,s)
+    lo, hi = blocks.min(axis=(1, 3)), blocks.max(axis=(1, 3))
+    ok = (lo > 0) & (hi - lo <= 0.05 * lo)
+    return np.where(ok, blocks.mean(axis=(1, 3)), 0.0).astype(np.float32)
 
 
 # ------------------------------------------------------------------------------------ registration

@@ -39,7 +39,7 @@ DEPTH_PATTERN = r"depth(\d{6})\.png"
 
 
 def read_trajectory(path: Path) -> list[np.ndarray | None]:
-    """One (4,4) pose per non-empty line of traj.txt (pose k = frame k); None for a line that is not 16 numbers."""
+    """One (4,4) pose per non-empty line of traj.txt (pose k = frame k); None where not 16 numbers."""
     if not path.is_file():
         raise SourceError(f"{path}: trajectory file is missing; Replica needs traj.txt next to results/")
     poses: list[np.ndarray | None] = []

@@ -15,7 +15,17 @@ COLOR_ENCODINGS = {"rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8uc3"}
 DEPTH_ENCODINGS = {"16uc1", "mono16", "32fc1"}
 IMAGE_TYPES = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-_CHANNELS = {"rgb8": 3, "bgr8": 3, "8uc3": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "16uc1": 1, "mono16": 1, "32fc1": 1}
+_CHANNELS = {
+    "rgb8": 3,
+    "bgr8": 3,
+    "8uc3": 3,
+    "rgba8": 4,
+    "bgra8": 4,
+    "mono8": 1,
+    "16uc1": 1,
+    "mono16": 1,
+    "32fc1": 1,
+}
 _DTYPES = {"16uc1": "u2", "mono16": "u2", "32fc1": "f4"}
 
 
@@ -49,8 +59,9 @@ def _raw_pixels(msg: Any, topic: str) -> np.ndarray:
     enc = image_encoding(msg)
     if enc not in _CHANNELS:
         raise FrameError(
-            f"{topic}: image encoding '{msg.encoding}' is not supported (supported: rgb8, bgr8, rgba8, bgra8, "
-            "mono8, 16UC1, mono16, 32FC1); choose another topic with source.rosbag.rgb_topic / depth_topic"
+            f"{topic}: image encoding '{msg.encoding}' is not supported (supported: rgb8, bgr8, rgba8, "
+            "bgra8, mono8, 16UC1, mono16, 32FC1); choose another topic with source.rosbag.rgb_topic / "
+            "source.rosbag.depth_topic"
         )
     h, w, c = int(msg.height), int(msg.width), _CHANNELS[enc]
     base = _DTYPES.get(enc, "u1")
@@ -59,7 +70,9 @@ def _raw_pixels(msg: Any, topic: str) -> np.ndarray:
     step = int(msg.step) or row_bytes
     buf = np.frombuffer(memoryview(msg.data), dtype=np.uint8)
     if step < row_bytes or buf.size < step * (h - 1) + row_bytes:
-        raise FrameError(f"{topic}: image data holds {buf.size} bytes, too few for {w}x{h} {enc} with step {step}")
+        raise FrameError(
+            f"{topic}: image data holds {buf.size} bytes, too few for {w}x{h} {enc} with step {step}"
+        )
     if buf.size < step * h:  # the last row may come without its padding
         buf = np.concatenate([buf, np.zeros(step * h - buf.size, np.uint8)])
     rows = np.ascontiguousarray(buf[: step * h].reshape(h, step)[:, :row_bytes])  # (H, W*C*bytes)
@@ -87,8 +100,8 @@ def decode_color(msg: Any, topic: str) -> np.ndarray:
     enc = image_encoding(msg)
     if enc not in COLOR_ENCODINGS:
         raise FrameError(
-            f"{topic}: '{msg.encoding}' is not a colour encoding (supported: rgb8, bgr8, rgba8, bgra8, mono8); "
-            "choose the colour topic with source.rosbag.rgb_topic"
+            f"{topic}: '{msg.encoding}' is not a colour encoding (supported: rgb8, bgr8, rgba8, bgra8, "
+            "mono8); choose the colour topic with source.rosbag.rgb_topic"
         )
     px = _raw_pixels(msg, topic)
     if enc == "mono8":
@@ -102,7 +115,9 @@ def _compressed_depth(msg: Any, topic: str, depth_scale: float) -> np.ndarray:
     """compressedDepth: a 12-byte header (int32 format, float32 quant A, B) then a 16-bit PNG."""
     fmt = str(msg.format).lower()
     if "rvl" in fmt:
-        raise FrameError(f"{topic}: compressedDepth 'rvl' is not supported; record the png variant or raw depth")
+        raise FrameError(
+            f"{topic}: compressedDepth 'rvl' is not supported; record the png variant or raw depth"
+        )
     data = bytes(memoryview(msg.data))
     if len(data) <= 12:
         raise FrameError(f"{topic}: compressedDepth message is too short ({len(data)} bytes)")
@@ -154,7 +169,9 @@ def camera_info_K(msg: Any, topic: str) -> tuple[np.ndarray, int, int]:
     return K, int(msg.width), int(msg.height)
 
 
-def fit_K(K: np.ndarray, info_size: tuple[int, int], image_size_wh: tuple[int, int], topic: str) -> np.ndarray:
+def fit_K(
+    K: np.ndarray, info_size: tuple[int, int], image_size_wh: tuple[int, int], topic: str
+) -> np.ndarray:
     """K for the image size: unchanged when sizes agree (or the CameraInfo has none), scaled when the
     image is an exact uniform scaling of the calibrated size; SourceError naming `topic` otherwise."""
     (wi, hi), (w, h) = info_size, image_size_wh

@@ -11,21 +11,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
 import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from h2viz.errors import SourceError
-from h2viz.sources.rosbag_recover import (
-    Damaged,
-    McapScanner,
-    Ros1Scanner,
-    ScanIndex,
-    SqliteScanner,
-    recovery_typestore,
-    select_blocks,
-)
+from h2viz.sources.rosbag_recover import McapScanner, Ros1Scanner, ScanIndex, SqliteScanner
 
 log = logging.getLogger("h2viz.sources.rosbag")
 
@@ -49,6 +42,24 @@ class RawMessage:
 
 class _Scanner(Protocol):
     def read_block(self, block: int) -> Iterator[tuple[int, int, bytes]]: ...
+
+
+def recovery_typestore(typedefs: dict[str, object], ros2: bool) -> Typestore:
+    """Default types of the ROS generation, overridden by the definitions found in the file."""
+    store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
+    try:
+        store.register(typedefs)  # type: ignore[arg-type]
+    except Exception:  # a definition differs from the default one: use the file's alone
+        store = get_typestore(Stores.EMPTY)
+        store.register(typedefs)  # type: ignore[arg-type]
+    return store
+
+
+def select_blocks(entries: np.ndarray, conn_ids: Collection[int], start: int, stop: int) -> list[int]:
+    """Blocks holding a wanted message, in file order; `entries` is (M,3) int64 (log_ns, conn_id, block)."""
+    t, c, b = entries[:, 0], entries[:, 1], entries[:, 2]
+    mask = np.isin(c, np.fromiter(conn_ids, dtype=np.int64)) & (t >= start) & (t < stop)
+    return [int(x) for x in np.unique(b[mask])]
 
 
 def looks_like_bag(path: Path) -> bool:
@@ -95,7 +106,7 @@ class BagFile:
         self.ros2 = not (path.is_file() and path.suffix == ".bag")
         self.damage = ""
         self._reader: AnyReader | None = None
-        self._scanners: list[tuple[_Scanner, ScanIndex]] = []
+        self._scanners: list[tuple[_Scanner, ScanIndex, np.ndarray]] = []  # entries (M,3) int64
         default = get_typestore(Stores.ROS2_HUMBLE if self.ros2 else Stores.ROS1_NOETIC)
         try:
             reader = AnyReader([path], default_typestore=default)
@@ -114,17 +125,20 @@ class BagFile:
             try:
                 scanner = {".bag": Ros1Scanner, ".mcap": McapScanner, ".db3": SqliteScanner}[f.suffix](f)
                 index = scanner.scan()
-            except (Damaged, KeyError, OSError, Exception) as e:
+            except Exception as e:  # Damaged, OSError, sqlite3 and type-parsing errors alike
                 raise SourceError(
                     f"{f}: cannot be read as a ROS bag ({reason}; {e}). Check that the file is a complete "
                     "ROS 1 .bag, ROS 2 .db3 / .mcap or a ROS 2 bag folder, and pass it to --data"
                 ) from e
-            self._scanners.append((scanner, index))
+            entries = np.array(index.entries, dtype=np.int64).reshape(-1, 3)  # (M,3) log_ns, conn, block
+            self._scanners.append((scanner, index, entries))
             typedefs.update(index.typedefs)
             if index.damage:
                 self.damage = f"{f.name}: {index.damage}"
         if not files:
-            raise SourceError(f"{self.path}: no bag storage files found ({reason}); pass a .bag, .db3, .mcap or bag folder")
+            raise SourceError(
+                f"{self.path}: no bag storage files found ({reason}); pass a .bag, .db3, .mcap or bag folder"
+            )
         self.typestore = recovery_typestore(typedefs, self.ros2)
         log.warning(
             "%s could not be opened normally (%s); reading it sequentially%s",
@@ -139,13 +153,10 @@ class BagFile:
             for name, info in self._reader.topics.items():
                 counts[name] = TopicInfo(name, info.msgtype or "", info.msgcount)
             return counts
-        for _, index in self._scanners:
-            per_conn: dict[int, int] = {}
-            for _t, cid, _b in index.entries:
-                per_conn[cid] = per_conn.get(cid, 0) + 1
+        for _, index, entries in self._scanners:
             for cid, conn in index.connections.items():
                 old = counts.get(conn.topic)
-                n = per_conn.get(cid, 0) + (old.count if old else 0)
+                n = int(np.count_nonzero(entries[:, 1] == cid)) + (old.count if old else 0)
                 counts[conn.topic] = TopicInfo(conn.topic, conn.msgtype, n)
         return counts
 
@@ -155,10 +166,12 @@ class BagFile:
         """(first, last) log time of the readable messages."""
         if self._reader is not None:
             return self._reader.start_time, max(self._reader.start_time, self._reader.end_time - 1)
-        times = [t for _, index in self._scanners for t, _c, _b in index.entries]
-        return (min(times), max(times)) if times else (0, 0)
+        times = np.concatenate([e[:, 0] for _, _, e in self._scanners] + [np.zeros(0, np.int64)])
+        return (int(times.min()), int(times.max())) if times.size else (0, 0)
 
-    def messages(self, topics: Collection[str], start_ns: int | None = None, stop_ns: int | None = None) -> Iterator[RawMessage]:
+    def messages(
+        self, topics: Collection[str], start_ns: int | None = None, stop_ns: int | None = None
+    ) -> Iterator[RawMessage]:
         """Raw messages of `topics` with start_ns <= log time < stop_ns; stops (and records why) at damage."""
         try:
             if self._reader is not None:
@@ -173,9 +186,9 @@ class BagFile:
             log.warning("%s: %s; the messages after it are skipped", self.path, self.damage)
 
     def _scanned(self, topics: Collection[str], start: int, stop: int) -> Iterator[RawMessage]:
-        for scanner, index in self._scanners:
+        for scanner, index, entries in self._scanners:
             conns = {c.id: c for c in index.connections.values() if c.topic in topics}
-            for block in select_blocks(index.entries, conns, start, stop):
+            for block in select_blocks(entries, conns, start, stop):
                 for cid, log_ns, data in scanner.read_block(block):
                     if cid in conns and start <= log_ns < stop:
                         yield RawMessage(conns[cid].topic, conns[cid].msgtype, log_ns, data)

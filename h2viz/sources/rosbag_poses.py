@@ -74,7 +74,9 @@ class PoseTrack:
         q = q / np.linalg.norm(q, axis=-1, keepdims=True)
         return PoseTrack(times[keep], t, q, static)
 
-    def sample(self, query_s: np.ndarray, max_extrapolate_s: float, max_span_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def sample(
+        self, query_s: np.ndarray, max_extrapolate_s: float, max_span_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Transforms (N,4,4) at query times (N,) and validity (N,): interpolated between neighbours at
         most `max_span_s` apart, held constant up to `max_extrapolate_s` beyond either end."""
         n, m = query_s.shape[0], self.times_s.shape[0]
@@ -87,12 +89,14 @@ class PoseTrack:
         hi = np.clip(np.searchsorted(self.times_s, query_s), 1, m - 1)  # (N,) right neighbour
         lo = hi - 1
         t0, t1 = self.times_s[lo], self.times_s[hi]
-        a = np.clip((query_s - t0) / (t1 - t0), 0.0, 1.0)
+        a = np.clip((query_s - t0) / (t1 - t0), -1.0, 2.0)  # beyond [0, 1]: constant-velocity extrapolation
         t = self.t_xyz[lo] + a[:, None] * (self.t_xyz[hi] - self.t_xyz[lo])
         q = slerp(self.q_xyzw[lo], self.q_xyzw[hi], a)
         inside = (query_s >= self.times_s[0]) & (query_s <= self.times_s[-1])
         nearest = np.minimum(np.abs(query_s - t0), np.abs(query_s - t1))
-        ok = np.where(inside, (t1 - t0 <= max_span_s) | (nearest <= max_extrapolate_s), nearest <= max_extrapolate_s)
+        ok = np.where(
+            inside, (t1 - t0 <= max_span_s) | (nearest <= max_extrapolate_s), nearest <= max_extrapolate_s
+        )
         return compose(t, q), ok
 
 
@@ -104,8 +108,8 @@ def _xyzw(v: Any) -> np.ndarray:
     return np.array([v.x, v.y, v.z, v.w], dtype=np.float64)
 
 
-def stamp_s(header: Any) -> float:
-    return float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
+def stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
 def frame_name(name: str) -> str:
@@ -115,7 +119,7 @@ def frame_name(name: str) -> str:
 
 @dataclass(frozen=True)
 class PoseSample:
-    time_s: float
+    stamp_ns: int
     t_xyz: np.ndarray  # (3,)
     q_xyzw: np.ndarray  # (4,)
     parent: str  # frame the pose is expressed in
@@ -127,10 +131,16 @@ def pose_sample(msg: Any, msgtype: str) -> PoseSample:
     parent = frame_name(msg.header.frame_id)
     if msgtype.endswith("TransformStamped"):
         tr = msg.transform
-        return PoseSample(stamp_s(msg.header), _xyz(tr.translation), _xyzw(tr.rotation), parent, frame_name(msg.child_frame_id))
+        return PoseSample(
+            stamp_ns(msg.header),
+            _xyz(tr.translation),
+            _xyzw(tr.rotation),
+            parent,
+            frame_name(msg.child_frame_id),
+        )
     pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
     child = frame_name(getattr(msg, "child_frame_id", ""))
-    return PoseSample(stamp_s(msg.header), _xyz(pose.position), _xyzw(pose.orientation), parent, child)
+    return PoseSample(stamp_ns(msg.header), _xyz(pose.position), _xyzw(pose.orientation), parent, child)
 
 
 @dataclass
@@ -143,11 +153,11 @@ class TfTree:
     static_edges: set[tuple[str, str]] = field(default_factory=set)
     _tracks: dict[str, tuple[str, PoseTrack]] = field(default_factory=dict)
 
-    def add(self, msg: Any, static: bool) -> None:
-        """Record every TransformStamped of a TFMessage."""
+    def add(self, msg: Any, static: bool, origin_ns: int) -> None:
+        """Record every TransformStamped of a TFMessage (times in seconds after `origin_ns`)."""
         for tf in msg.transforms:
             s = pose_sample(tf, "geometry_msgs/msg/TransformStamped")
-            self.samples[(s.parent, s.child)].append((s.time_s, s.t_xyz, s.q_xyzw))
+            self.samples[(s.parent, s.child)].append(((s.stamp_ns - origin_ns) * 1e-9, s.t_xyz, s.q_xyzw))
             if static:
                 self.static_edges.add((s.parent, s.child))
         self._tracks.clear()
@@ -177,7 +187,9 @@ class TfTree:
     def connected(self, target: str, source: str) -> bool:
         return bool(set(self.ancestors(target)) & set(self.ancestors(source)))
 
-    def _down(self, lca: str, frame: str, query_s: np.ndarray, gap_s: float, span_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def _down(
+        self, lca: str, frame: str, query_s: np.ndarray, gap_s: float, span_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """T_lca_frame (N,4,4) and validity (N,) along the chain from `lca` down to `frame`."""
         n = query_s.shape[0]
         T, ok = np.tile(np.eye(4), (n, 1, 1)), np.ones(n, bool)
@@ -187,7 +199,9 @@ class TfTree:
             T, ok = T_edge @ T, ok & ok_edge
         return T, ok
 
-    def lookup(self, target: str, source: str, query_s: np.ndarray, gap_s: float, span_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def lookup(
+        self, target: str, source: str, query_s: np.ndarray, gap_s: float, span_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """T_target_source (N,4,4) at the query times and validity (N,); raises KeyError when unconnected."""
         up_target = self.ancestors(target)
         lca = next((f for f in self.ancestors(source) if f in up_target), None)

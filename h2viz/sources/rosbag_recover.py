@@ -8,17 +8,21 @@ import bz2
 import logging
 import sqlite3
 import struct
-from collections.abc import Collection, Iterator
+import sys
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
 from typing import BinaryIO
 
 import lz4.frame
-import zstandard
-from rosbags.rosbag1.reader import normalize as normalize_ros1_type
-from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
-from rosbags.typesys.store import Typestore
+from rosbags.typesys import get_types_from_idl, get_types_from_msg
+from rosbags.typesys.msg import normalize_msgtype
+
+if sys.version_info >= (3, 14):
+    from compression import zstd
+else:  # the backport that rosbags itself depends on
+    from backports import zstd
 
 log = logging.getLogger("h2viz.sources.rosbag")
 
@@ -101,7 +105,9 @@ class Ros1Scanner:
         self.path = path
 
     def _record(self, bio: BinaryIO) -> tuple[dict[str, bytes], bytes, bool]:
-        header = _ros1_fields(_exact(bio, struct.unpack("<I", _exact(bio, 4, "a record"))[0], "a record header"))
+        header = _ros1_fields(
+            _exact(bio, struct.unpack("<I", _exact(bio, 4, "a record"))[0], "a record header")
+        )
         (dlen,) = struct.unpack("<I", _exact(bio, 4, "a record"))
         data = bio.read(dlen)
         return header, data, len(data) == dlen
@@ -125,7 +131,7 @@ class Ros1Scanner:
         if op == b"\x07":
             conn = struct.unpack("<I", header["conn"])[0]
             fields = _ros1_fields(data)
-            msgtype = normalize_ros1_type(fields["type"].decode())
+            msgtype = normalize_msgtype(fields["type"].decode())
             index.connections[conn] = ScanConnection(conn, header["topic"].decode(), msgtype)
             index.typedefs.update(get_types_from_msg(fields.get("message_definition", b"").decode(), msgtype))
         elif op == b"\x02":
@@ -142,12 +148,16 @@ class Ros1Scanner:
                 try:
                     header, data, complete = self._record(bio)
                     records = _ros1_records(self._payload(header, data, complete, pos))
-                    for inner_header, inner_data in records if header.get("op") == b"\x05" else [(header, data)]:
+                    for inner_header, inner_data in (
+                        records if header.get("op") == b"\x05" else [(header, data)]
+                    ):
                         self._add(index, inner_header, inner_data, pos)
                     if not complete:
                         raise Damaged(pos, "file ends inside a record")
                 except (Damaged, struct.error, KeyError, OSError, ValueError) as e:
-                    index.damage = f"{e} of {size}" if isinstance(e, Damaged) else f"unreadable record at byte {pos}"
+                    index.damage = (
+                        f"{e} of {size}" if isinstance(e, Damaged) else f"unreadable record at byte {pos}"
+                    )
                     break
         return index
 
@@ -199,7 +209,7 @@ class McapScanner:
         elif not complete or len(payload) != n:
             raise Damaged(pos, f"file ends inside a {compression} chunk")
         elif compression == "zstd":
-            payload = zstandard.ZstdDecompressor().decompress(payload, max_output_size=_usize)
+            payload = zstd.decompress(payload)
         elif compression == "lz4":
             payload = lz4.frame.decompress(payload)
         else:
@@ -218,7 +228,9 @@ class McapScanner:
             text = buf.read(n).decode()
             self.schema_names[sid] = name
             if text:
-                index.typedefs.update(get_types_from_idl(text) if encoding == "ros2idl" else get_types_from_msg(text, name))
+                index.typedefs.update(
+                    get_types_from_idl(text) if encoding == "ros2idl" else get_types_from_msg(text, name)
+                )
         elif op == 0x04:  # channel
             cid, sid = struct.unpack("<HH", buf.read(4))
             index.connections[cid] = ScanConnection(cid, _string(buf), self.schema_names.get(sid, ""))
@@ -241,7 +253,7 @@ class McapScanner:
                         self._add(index, inner_op, data, pos)
                     if not complete:
                         raise Damaged(pos, "file ends inside a record")
-            except (Damaged, struct.error, OSError, ValueError, zstandard.ZstdError) as e:
+            except (Damaged, struct.error, OSError, ValueError, zstd.ZstdError) as e:
                 index.damage = f"{e} of {size}" if isinstance(e, Damaged) else f"unreadable record ({e})"
         return index
 
@@ -291,25 +303,7 @@ class SqliteScanner:
         return index
 
     def read_block(self, block: int) -> Iterator[tuple[int, int, bytes]]:
-        for tid, log_ns, data in self.db.execute("SELECT topic_id, timestamp, data FROM messages WHERE id=?", (block,)):
+        for tid, log_ns, data in self.db.execute(
+            "SELECT topic_id, timestamp, data FROM messages WHERE id=?", (block,)
+        ):
             yield int(tid), int(log_ns), bytes(data)
-
-
-# ------------------------------------------------------------------------------------------ typing
-
-
-def recovery_typestore(typedefs: dict[str, object], ros2: bool) -> Typestore:
-    """Default types of the ROS generation, overridden by the definitions found in the file."""
-    store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
-    try:
-        store.register(typedefs)  # type: ignore[arg-type]
-    except Exception:  # a definition differs from the default one: use the file's alone
-        store = get_typestore(Stores.EMPTY)
-        store.register(typedefs)  # type: ignore[arg-type]
-    return store
-
-
-def select_blocks(entries: list[tuple[int, int, int]], conn_ids: Collection[int], start: int, stop: int) -> list[int]:
-    """Blocks holding a wanted message, in file order."""
-    wanted = set(conn_ids)
-    return sorted({b for t, c, b in entries if c in wanted and start <= t < stop})

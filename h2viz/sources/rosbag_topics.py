@@ -18,6 +18,7 @@ log = logging.getLogger("h2viz.sources.rosbag")
 
 _COLOR_WORDS = ("rgb", "color", "colour")
 _NOT_COLOR_WORDS = ("depth", "infra", "/ir", "ir/", "disparity", "mask", "label", "confidence")
+_COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8uc3", "compressed")  # compressed: jpeg/png
 _POSE_WORDS = ("ground", "truth", "gt", "mocap", "vicon", "optitrack", "camera", "pose")
 
 
@@ -38,22 +39,28 @@ def _namespace(topic: str) -> str:
 
 
 def _score_depth(topic: TopicInfo, msg: Any) -> float:
-    name = topic.name.lower()
-    score = 4.0 if is_depth_message(msg) else (1.0 if "depth" in name and image_encoding(msg) != "compressed" else -1)
-    if score < 0 or image_encoding(msg) in ("rgb8", "bgr8", "rgba8", "bgra8"):
+    """Depth encodings first; else 'depth' in the name when the pixels are not colour (-1 = not depth)."""
+    name, enc = topic.name.lower(), image_encoding(msg)
+    if is_depth_message(msg):
+        score = 4.0
+    elif "depth" in name and enc not in _COLOR_ENCODINGS:
+        score = 1.0
+    else:
         return -1
     score += 2.0 * ("depth" in name) + 1.0 * ("aligned" in name or "registered" in name)
-    return score + 0.5 * (topic.msgtype.endswith("/Image")) - 0.5 * ("compressed" in name)
+    return score + 0.5 * topic.msgtype.endswith("/Image") - 0.5 * ("compressed" in name)
 
 
 def _score_color(topic: TopicInfo, msg: Any) -> float:
+    """Colour encodings, preferring rgb/color names and 3-channel raw images (-1 = not colour)."""
     name, enc = topic.name.lower(), image_encoding(msg)
-    if is_depth_message(msg) or any(w in name for w in _NOT_COLOR_WORDS) and not any(w in name for w in _COLOR_WORDS):
+    named_color = any(w in name for w in _COLOR_WORDS)
+    if is_depth_message(msg) or enc not in _COLOR_ENCODINGS:
         return -1
-    if enc not in ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8uc3", "compressed"):
+    if any(w in name for w in _NOT_COLOR_WORDS) and not named_color:
         return -1
-    score = 2.0 * any(w in name for w in _COLOR_WORDS) + 1.0 * ("image" in name) + 2.0 * (enc != "mono8")
-    return score + 0.5 * (topic.msgtype.endswith("/Image"))
+    score = 2.0 * named_color + 1.0 * ("image" in name) + 2.0 * (enc != "mono8")
+    return score + 0.5 * topic.msgtype.endswith("/Image")
 
 
 def _best(scores: dict[str, float], topics: dict[str, TopicInfo]) -> str:
@@ -78,7 +85,9 @@ def _pick_images(bag: BagFile, cfg: RosbagConfig, choice: TopicChoice) -> None:
     firsts = {t: bag.first(t) for t in images if not (cfg.rgb_topic and cfg.depth_topic)}
     firsts = {t: m for t, m in firsts.items() if m is not None}
     if cfg.depth_topic:
-        choice.depth = _checked(bag, cfg.depth_topic, tuple(IMAGE_TYPES), "source.rosbag.depth_topic", "depth")
+        choice.depth = _checked(
+            bag, cfg.depth_topic, tuple(IMAGE_TYPES), "source.rosbag.depth_topic", "depth"
+        )
         choice.notes.append(f"depth: {choice.depth} (source.rosbag.depth_topic)")
     else:
         choice.depth = _best({t: _score_depth(images[t], m) for t, m in firsts.items()}, bag.topics)
@@ -146,9 +155,15 @@ def require(choice: TopicChoice, bag: BagFile) -> None:
     """SourceError naming the missing stream and the option that selects it."""
     images = ", ".join(t for t, i in bag.topics.items() if i.msgtype in IMAGE_TYPES) or "none"
     if not choice.depth:
-        raise SourceError(f"{bag.path}: no depth image topic found (image topics: {images}); set source.rosbag.depth_topic=<topic>")
+        raise SourceError(
+            f"{bag.path}: no depth image topic found (image topics: {images}); "
+            "set source.rosbag.depth_topic=<topic>"
+        )
     if not choice.rgb:
-        raise SourceError(f"{bag.path}: no colour image topic found (image topics: {images}); set source.rosbag.rgb_topic=<topic>")
+        raise SourceError(
+            f"{bag.path}: no colour image topic found (image topics: {images}); "
+            "set source.rosbag.rgb_topic=<topic>"
+        )
     if not choice.pose and not choice.tf:
         raise SourceError(
             f"{bag.path}: no poses: no PoseStamped / Odometry / TransformStamped topic and no /tf; "
@@ -163,7 +178,9 @@ def bag_info(path: Path, cfg: RosbagConfig) -> str:
         first, last = bag.time_range_ns
         duration_s = max(0.0, (last - first) * 1e-9)
         kind = "ROS 2" if bag.ros2 else "ROS 1"
-        lines = [f"{path}: {kind} bag, {duration_s:.2f} s, {sum(i.count for i in bag.topics.values())} messages"]
+        lines = [
+            f"{path}: {kind} bag, {duration_s:.2f} s, {sum(i.count for i in bag.topics.values())} messages"
+        ]
         if bag.damage:
             lines.append(f"  damaged: {bag.damage}; only the messages before it are listed")
         width = max([len(t) for t in bag.topics] + [5])

@@ -45,7 +45,9 @@ class ScanNetSource(FrameSource):
         if not self.ids:
             raise SourceError(f"{self.root}: no color/<n>.jpg or depth/<n>.png images found")
         if not (self.root / "pose").is_dir():
-            raise SourceError(f"{self.root / 'pose'}: pose folder is missing; ScanNet needs pose/<n>.txt files")
+            raise SourceError(
+                f"{self.root / 'pose'}: pose folder is missing; ScanNet needs pose/<n>.txt files"
+            )
         K = configured_intrinsics(cfg)
         if K is None:
             K = read_intrinsics_file(self.root / "intrinsic" / "intrinsic_depth.txt", (4, 4))

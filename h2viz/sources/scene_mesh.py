@@ -28,12 +28,24 @@ def rot_z(yaw_rad: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def grid_quad(corner: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Regular grid over the parallelogram corner + a*u + b*v (a, b in [0, 1]) with edges <= MAX_EDGE_M.
-    Returns vertices (N,3) and faces (M,3) wound so that u x v is the outward normal."""
-    nu = max(1, int(np.ceil(np.linalg.norm(u) / MAX_EDGE_M)))
-    nv = max(1, int(np.ceil(np.linalg.norm(v) / MAX_EDGE_M)))
-    a, b = np.meshgrid(np.linspace(0, 1, nu + 1), np.linspace(0, 1, nv + 1), indexing="ij")
+def _stops(length_m: float, cuts: np.ndarray) -> np.ndarray:
+    """Sorted grid positions in [0,1]: uniform steps <= MAX_EDGE_M plus the `cuts`, near-duplicates merged."""
+    n = max(1, int(np.ceil(length_m / MAX_EDGE_M)))
+    t = np.unique(np.concatenate([np.linspace(0, 1, n + 1), np.clip(cuts, 0, 1)]))
+    return t[np.concatenate([[True], np.diff(t) * length_m > 2e-3])] if len(t) > 2 else t
+
+
+def grid_quad(
+    corner: np.ndarray, u: np.ndarray, v: np.ndarray, cuts_u: np.ndarray | None = None, cuts_v: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Grid over the parallelogram corner + a*u + b*v (a, b in [0, 1]) with edges <= MAX_EDGE_M and extra
+    grid lines at the fractions `cuts_u`, `cuts_v`. Returns vertices (N,3) and faces (M,3) wound so
+    that u x v is the outward normal."""
+    empty = np.zeros(0)
+    sa = _stops(float(np.linalg.norm(u)), empty if cuts_u is None else cuts_u)
+    sb = _stops(float(np.linalg.norm(v)), empty if cuts_v is None else cuts_v)
+    nu, nv = len(sa) - 1, len(sb) - 1
+    a, b = np.meshgrid(sa, sb, indexing="ij")
     verts = corner + a.reshape(-1, 1) * u + b.reshape(-1, 1) * v
     i, j = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
     v00 = (i * (nv + 1) + j).ravel()
@@ -106,6 +118,9 @@ class MeshBuilder:
         self.vert_part: list[np.ndarray] = []
         self.parts = PartTable()
         self.n_verts = 0
+        self.solid_boxes: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []  # owner, centre, R, half
+        self.solid_discs: list[tuple[int, np.ndarray, float]] = []  # owner, base centre, radius
+        self.flats: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []  # corner, u, v, part
 
     def _new_part(self, part: Part, R: np.ndarray, origin: np.ndarray, size: np.ndarray) -> int:
         t = self.parts
@@ -129,51 +144,104 @@ class MeshBuilder:
 
     def quad(self, corner: np.ndarray, u: np.ndarray, v: np.ndarray, R: np.ndarray, part: Part) -> int:
         """A flat rectangle (walls, floor); its texture frame has origin `corner` and rotation R."""
-        verts, faces = grid_quad(np.asarray(corner, float), np.asarray(u, float), np.asarray(v, float))
         pid = self._new_part(part, R, corner, np.array([np.linalg.norm(u), np.linalg.norm(v), 0.0]))
-        n = np.cross(u, v) / np.linalg.norm(np.cross(u, v))
-        self._append(verts, faces, np.broadcast_to(n, verts.shape), pid)
+        self.flats.append((np.asarray(corner, float), np.asarray(u, float), np.asarray(v, float), pid))
         return pid
 
-    def box(
-        self, center: np.ndarray, size: np.ndarray, yaw: float, part: Part, omit: tuple[str, ...] = ()
-    ) -> int:
-        """An axis-aligned (then yawed) box; `omit` drops faces nobody can see (e.g. '-z' on the floor)."""
+    def box(self, center: np.ndarray, size: np.ndarray, yaw: float, part: Part) -> int:
+        """A box of full `size` (3,) about `center`, turned by `yaw` about z; it is also a solid that
+        buries the surfaces of other parts it touches or encloses."""
         R, half = rot_z(yaw), np.asarray(size, float) / 2.0
         center = np.asarray(center, float)
         pid = self._new_part(part, R, center, half)
+        self.solid_boxes.append((pid, center, R, half))
         for name in BOX_FACES:
-            if name in omit:
-                continue
             c, u, v = (np.array(x, float) * half for x in _BOX_GRIDS[name])
-            verts, faces = grid_quad(center + R @ c, R @ u, R @ v)
-            n = np.cross(R @ u, R @ v)
-            self._append(verts, faces, np.broadcast_to(n / np.linalg.norm(n), verts.shape), pid)
+            self.flats.append((center + R @ c, R @ u, R @ v, pid))
         return pid
 
-    def solid(self, base: np.ndarray, pieces: list[np.ndarray], part: Part, n_seg: int = 48) -> int:
-        """A lathed solid standing at `base`; each piece is a (K,2) (r, z) polyline with its own normals."""
+    def _grid_flats(self) -> None:
+        """Mesh every flat face, with extra grid lines where other solids touch it, so that the part of
+        a face hidden by a solid (the floor under a cabinet...) is cut out along the contact edge."""
+        boxes = self.solid_boxes
+        signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, 8).T  # (8,3)
+        corners = np.stack([c + (signs * h) @ R.T for _, c, R, h in boxes])  # (S,8,3)
+        owners = np.array([o for o, *_ in boxes])
+        for corner, u, v, pid in self.flats:
+            n = np.cross(u, v)
+            n /= np.linalg.norm(n)
+            rel = corners - corner  # (S,8,3)
+            dist, a, b = rel @ n, rel @ u / (u @ u), rel @ v / (v @ v)  # (S,8) each
+            touch = (dist.min(1) <= 2e-3) & (dist.max(1) > 2e-3) & (owners != pid)
+            touch &= (a.max(1) > 0) & (a.min(1) < 1) & (b.max(1) > 0) & (b.min(1) < 1)
+            cuts_u = np.concatenate([a[touch].min(1), a[touch].max(1)])
+            cuts_v = np.concatenate([b[touch].min(1), b[touch].max(1)])
+            verts, faces = grid_quad(corner, u, v, cuts_u, cuts_v)
+            self._append(verts, faces, np.broadcast_to(n, verts.shape), pid)
+
+    def slab(self, owner: int, lo: np.ndarray, hi: np.ndarray) -> None:
+        """An invisible solid box [lo, hi] belonging to part `owner` (the ground or a wall's outside)."""
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        self.solid_boxes.append((owner, (lo + hi) / 2, np.eye(3), (hi - lo) / 2))
+
+    def solid(
+        self, base: np.ndarray, pieces: list[np.ndarray], part: Part, n_seg: int = 48, foot_m: float = 0.0
+    ) -> int:
+        """A lathed solid standing at `base`; each piece is a (K,2) (r, z) polyline with its own normals.
+        `foot_m` > 0: the disc of that radius under it buries what it stands on."""
         base = np.asarray(base, float)
         top = max(float(np.max(p[:, 1])) for p in pieces)
         r_max = max(float(np.max(p[:, 0])) for p in pieces)
         pid = self._new_part(part, np.eye(3), base, np.array([r_max, r_max, top]))
+        if foot_m > 0:
+            self.solid_discs.append((pid, base, foot_m))
         n_seg = max(n_seg, int(np.ceil(2 * np.pi * r_max / MAX_EDGE_M)))
         for piece in pieces:
             verts, faces, normals = lathe(piece, n_seg)
             self._append(verts + base, faces, normals, pid)
         return pid
 
+    def buried(self, verts: np.ndarray, faces: np.ndarray, vert_part: np.ndarray, eps_m: float = 2e-3) -> np.ndarray:
+        """Faces (F,) hidden inside one solid of another part: all three corners inside (or on) it and
+        the face looking into it, like the floor under a cabinet or the back of a picture on a wall.
+        A face on a solid's surface that looks away from it (coplanar neighbours) stays."""
+        tri = verts[faces]  # (F,3,3)
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        probe = tri.mean(axis=1) + 3e-3 * normal / (np.linalg.norm(normal, axis=1, keepdims=True) + 1e-20)
+        out = np.zeros(len(faces), dtype=bool)
+        order = np.argsort(verts[:, 0])
+        xs = verts[order, 0]
+        inside = np.zeros(len(verts), dtype=bool)
+        solids = [(o, c, R, h, np.inf) for o, c, R, h in self.solid_boxes]
+        solids += [(o, c + [0, 0, 5e-3], np.eye(3), np.array([r, r, 5e-3]), r) for o, c, r in self.solid_discs]
+        for owner, center, R, half, radius in solids:
+            reach = float(np.abs(R[0]) @ half) + eps_m  # half extent of the solid along world x
+            idx = order[np.searchsorted(xs, center[0] - reach) : np.searchsorted(xs, center[0] + reach, "right")]
+            local = (verts[idx] - center) @ R  # (n,3) in the solid's frame
+            ok = np.all(np.abs(local) <= half + eps_m, axis=1) & (vert_part[idx] != owner)
+            inside[idx] = ok & (np.hypot(local[:, 0], local[:, 1]) <= radius + eps_m)
+            cand = np.flatnonzero(np.all(inside[faces], axis=1))
+            p = (probe[cand] - center) @ R
+            out[cand] |= np.all(np.abs(p) < half, axis=1) & (np.hypot(p[:, 0], p[:, 1]) < radius)
+            inside[idx] = False
+        return out
+
     def build(self) -> Geometry:
-        """The merged mesh (degenerate faces dropped) with its shading normals and part ids."""
+        """The merged mesh with buried and degenerate faces dropped, its shading normals and part ids."""
+        self._grid_flats()
         verts, faces = np.concatenate(self.verts), np.concatenate(self.faces)
+        vert_part = np.concatenate(self.vert_part)
         tri = verts[faces]  # (F,3,3)
         area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-        keep = area2 > 1e-10
+        keep = (area2 > 1e-10) & ~self.buried(verts, faces, vert_part)
+        used = np.zeros(len(verts), dtype=bool)
+        used[faces[keep]] = True
+        remap = np.cumsum(used) - 1
         return Geometry(
-            mesh=trimesh.Trimesh(verts, faces[keep], process=False, validate=False),
-            normals=np.concatenate(self.normals).astype(np.float64),
+            mesh=trimesh.Trimesh(verts[used], remap[faces[keep]], process=False, validate=False),
+            normals=np.concatenate(self.normals)[used].astype(np.float64),
             face_part=np.concatenate(self.face_part)[keep],
-            vert_part=np.concatenate(self.vert_part),
+            vert_part=vert_part[used],
             parts=PartArrays(self.parts),
         )
 
@@ -193,9 +261,22 @@ class PartArrays:
 
     def colors(self, points: np.ndarray, pid: np.ndarray) -> np.ndarray:
         """Albedo (N,3) in [0,1] of world points (N,3) on parts pid (N,)."""
-        local = np.einsum("nji,nj->ni", self.rotation[pid], points - self.origin[pid])
-        return albedo(self.material[pid], local, self.color_a[pid], self.color_b[pid], self.size[pid],
-                      self.params[pid])
+        order = np.argsort(pid.astype(np.int16), kind="stable")
+        out = np.empty((len(points), 3), dtype=np.float64)
+        out[order] = self.colors_grouped(points[order], pid[order])
+        return out
+
+    def colors_grouped(self, points: np.ndarray, pid: np.ndarray) -> np.ndarray:
+        """Like `colors` for points already grouped by part (pid sorted): contiguous slices, no copies."""
+        out = np.empty((len(points), 3), dtype=np.float64)
+        starts = np.flatnonzero(np.diff(pid, prepend=-1))
+        for lo, hi in zip(starts, np.append(starts[1:], len(pid)), strict=True):
+            k = int(pid[lo])
+            local = ((points[lo:hi] - self.origin[k]) @ self.rotation[k]).astype(np.float32)  # (n,3) part frame
+            out[lo:hi] = albedo(
+                Material(self.material[k]), local, self.color_a[k], self.color_b[k], self.size[k], self.params[k]
+            )
+        return out
 
 
 @dataclass

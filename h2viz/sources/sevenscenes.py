@@ -64,7 +64,9 @@ class SevenScenesSource(FrameSource):
         if not self.ids:
             seqs = sorted(p.name for p in self.root.glob("seq-*") if p.is_dir())
             hint = f"; pass one of its sequence folders ({', '.join(seqs)})" if seqs else ""
-            raise SourceError(f"{self.root}: no frame-%06d.depth.png / .color.png / .pose.txt files found{hint}")
+            raise SourceError(
+                f"{self.root}: no frame-%06d.depth.png / .color.png / .pose.txt files found{hint}"
+            )
         if not has_numbered_file(self.root, POSE_PATTERN):
             raise SourceError(f"{self.root}: no frame-%06d.pose.txt files; 7-Scenes frames need their poses")
         K = configured_intrinsics(cfg)

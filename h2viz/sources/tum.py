@@ -43,7 +43,9 @@ _PRESET_IN_NAME = re.compile(r"(?<![a-z])(?:freiburg|fr)_?([123])(?![0-9])")
 def _data_lines(path: Path) -> list[tuple[int, list[str]]]:
     """(line number, fields) of every non-empty, non-comment line; SourceError when the file is missing."""
     if not path.is_file():
-        raise SourceError(f"{path}: file is missing; a TUM RGB-D folder needs rgb.txt, depth.txt and groundtruth.txt")
+        raise SourceError(
+            f"{path}: file is missing; a TUM RGB-D folder needs rgb.txt, depth.txt and groundtruth.txt"
+        )
     rows = []
     for n, line in enumerate(path.read_text().splitlines(), start=1):
         fields = line.split()
@@ -148,7 +150,7 @@ def resolve_preset(preset: str, root: Path) -> str:
 
 
 class TumSource(FrameSource):
-    """TUM RGB-D sequences (depth / 5000 m, fr1/fr2/fr3 intrinsics presets, timestamps of the depth images)."""
+    """TUM RGB-D sequences (depth / 5000 m, fr1/fr2/fr3 intrinsics presets, depth image timestamps)."""
 
     format_name = "tum"
 
@@ -166,8 +168,7 @@ class TumSource(FrameSource):
         self.xyz, self.quat, self.has_pose = interpolate_poses(gt_t, gt_xyz, gt_q, self.depth_t, gap)
         self.K = configured_intrinsics(cfg)
         if self.K is None:
-            self.preset = resolve_preset(cfg.tum.preset, self.root)
-            self.K = pinhole(*PRESETS[self.preset])
+            self.K = pinhole(*PRESETS[resolve_preset(cfg.tum.preset, self.root)])
         self.scale_m = depth_scale_m(cfg, DEPTH_SCALE_M)
 
     @staticmethod
@@ -194,7 +195,9 @@ class TumSource(FrameSource):
                 "(source.tum.max_time_gap_s); frame skipped"
             )
         if not (np.all(np.isfinite(self.xyz[key])) and np.all(np.isfinite(self.quat[key]))):
-            raise FrameError(f"{depth_path} (t={t:.6f}): pose from {self.gt_path} holds inf/NaN; frame skipped")
+            raise FrameError(
+                f"{depth_path} (t={t:.6f}): pose from {self.gt_path} holds inf/NaN; frame skipped"
+            )
         color_path = self.root / self.rgb_names[self.rgb_idx[key]]
         depth_m = read_depth(depth_path, self.scale_m)
         rgb = fit_color_to_depth(read_color(color_path), depth_m.shape, color_path)

@@ -12,7 +12,9 @@ import trimesh
 from h2viz.geometry import world_rays
 
 
-def grid_plane(x0: float, x1: float, y0: float, y1: float, z: float = 0.0, cells: int = 100) -> trimesh.Trimesh:
+def grid_plane(
+    x0: float, x1: float, y0: float, y1: float, z: float = 0.0, cells: int = 100
+) -> trimesh.Trimesh:
     """Rectangle [x0,x1] x [y0,y1] at height z, split into cells x cells squares (2 triangles each)."""
     xs, ys = np.linspace(x0, x1, cells + 1), np.linspace(y0, y1, cells + 1)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")

@@ -59,7 +59,9 @@ def test_replica_reads_frames_and_skips_bad_ones(tmp_path: Path) -> None:
     assert np.allclose(next(iter(src)).K, K_FIXTURE)
 
 
-def test_replica_short_trajectory_uses_matching_frames(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_replica_short_trajectory_uses_matching_frames(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     fx = write_replica(tmp_path / "room0", broken=False)
     lines = (fx.root / "traj.txt").read_text().splitlines()
     (fx.root / "traj.txt").write_text("\n".join(lines[:4]) + "\n")
@@ -118,7 +120,9 @@ def test_tum_association_interpolation_and_skips(tmp_path: Path) -> None:
     frames = {f.index: f for f in src}
     np.testing.assert_allclose(frames[0].K, fx.K)
     # frame 3 takes the nearest sample (2 ms before), which differs from the pose at its own time
-    assert not np.allclose(frames[3].T_world_camera, tum_trajectory(fx.timestamps[3] - 1305031100.0), atol=1e-3)
+    assert not np.allclose(
+        frames[3].T_world_camera, tum_trajectory(fx.timestamps[3] - 1305031100.0), atol=1e-3
+    )
     assert "no pose" in src.skipped[0].reason and "no colour" not in src.skipped[0].reason
     assert "colour" in src.skipped[1].reason
 
@@ -134,7 +138,9 @@ def test_tum_wider_gap_matches_more(tmp_path: Path) -> None:
     assert frames[5].rgb[0, 0, 2] == fixture_rgb(6)[0, 0, 2]  # colour of frame 6, 21 ms away
 
 
-@pytest.mark.parametrize(("name", "preset"), [("rgbd_dataset_freiburg3_office", "fr3"), ("tum_fr1_xyz", "fr1")])
+@pytest.mark.parametrize(
+    ("name", "preset"), [("rgbd_dataset_freiburg3_office", "fr3"), ("tum_fr1_xyz", "fr1")]
+)
 def test_tum_preset_from_folder_name(tmp_path: Path, name: str, preset: str) -> None:
     fx = write_tum(tmp_path / name, n=2, broken=False)
     src = TumSource(SourceConfig(path=str(fx.root)))
@@ -210,7 +216,12 @@ def test_sevenscenes_downscale_stride_max_frames(tmp_path: Path) -> None:
     assert len(src) == 2 and [f.index for f in frames] == [0, 2]
     assert frames[1].depth_m.shape == (24, 32) and frames[1].rgb.shape == (24, 32, 3)
     np.testing.assert_allclose(frames[1].K, [[25, 0, 15.5], [0, 26, 11.5], [0, 0, 1]])
-    np.testing.assert_allclose(frames[1].depth_m, fx.depth_m[2][1::2, 1::2], rtol=1e-6)
+    full = fx.depth_m[2]
+    blocks = np.stack([full[0::2, 0::2], full[0::2, 1::2], full[1::2, 0::2], full[1::2, 1::2]])  # (4,24,32)
+    whole = (blocks > 0).all(axis=0)
+    expected = np.where(whole, blocks.mean(axis=0), 0.0)  # block centre = where K's principal point moved
+    np.testing.assert_allclose(frames[1].depth_m, expected, rtol=1e-5)
+    assert (frames[1].depth_m[~whole] == 0).all()
     expected_rgb = cv2.resize(fx.rgb[2], (32, 24), interpolation=cv2.INTER_AREA)
     assert np.abs(frames[1].rgb.astype(int) - expected_rgb).max() <= 1
 

@@ -1,0 +1,152 @@
+"""Masked marching cubes on one chunk's part of the global SDF lattice, with chunk-independent vertices.
+
+A chunk samples the lattice (spacing voxel_size_m / resolution) only at corners of cells inside its
+allocated voxels, and only those cells produce triangles. Edge crossings are recomputed from the two
+lattice values of their edge in global lattice indices, so a crossing on a face shared by two chunks gets
+bit-identical coordinates in both and `weld` merges them by exact match.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from skimage.measure import marching_cubes
+
+SNAP = 1e-4  # crossings closer than this (in edge lengths) to a lattice point are placed on it
+
+
+@dataclass(frozen=True)
+class ChunkLattice:
+    """The part of the global lattice that one chunk samples."""
+
+    key: tuple[int, int, int]
+    origin: np.ndarray  # (3,) int64 global lattice index of local index (0,0,0)
+    cells: np.ndarray  # (X,Y,Z) bool, cells (by lower corner) inside allocated voxels
+    points: np.ndarray  # (N,3) int64 local lattice indices of every corner of those cells
+
+
+def corner_slices(shape: tuple[int, ...]) -> Iterator[tuple[slice, ...]]:
+    """Slices of a (X+1,Y+1,Z+1) corner array that line each of the 8 cell corners up with (X,Y,Z) cells."""
+    for offset in itertools.product((0, 1), repeat=3):
+        yield tuple(slice(o, o + n) for o, n in zip(offset, shape, strict=True))
+
+
+def chunk_lattice(key: tuple[int, int, int], voxels: np.ndarray, resolution: int) -> ChunkLattice:
+    """Cells and needed lattice points of one chunk's allocated voxels (V,3) (global voxel coords)."""
+    lo = voxels.min(axis=0)
+    occupied = np.zeros(voxels.max(axis=0) - lo + 1, dtype=bool)
+    occupied[tuple((voxels - lo).T)] = True
+    cells = occupied.repeat(resolution, 0).repeat(resolution, 1).repeat(resolution, 2)
+    needed = np.zeros(np.add(cells.shape, 1), dtype=bool)
+    for sl in corner_slices(cells.shape):
+        needed[sl] |= cells
+    return ChunkLattice(key, lo * resolution, cells, np.argwhere(needed))
+
+
+def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique int64 rows (U,3) of (N,3) and the inverse index (N,) (packed keys when the span allows)."""
+    if len(rows) == 0:
+        return rows, np.zeros(0, dtype=np.int64)
+    lo = rows.min(axis=0)
+    span = rows.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0**62:
+        uniq, inverse = np.unique(rows, axis=0, return_inverse=True)
+        return uniq, inverse.reshape(-1)
+    d = rows - lo
+    keys = (d[:, 0] * span[1] + d[:, 1]) * span[2] + d[:, 2]
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return rows[first], inverse.reshape(-1)
+
+
+def on_chunk_face(lat: ChunkLattice, chunk_cells: int) -> np.ndarray:
+    """(N,) bool: which of the lattice's points lie on a chunk face (global index % chunk_cells == 0)."""
+    on_face = [
+        (o + np.arange(n + 1)) % chunk_cells == 0 for o, n in zip(lat.origin, lat.cells.shape, strict=True)
+    ]
+    p = lat.points
+    return on_face[0][p[:, 0]] | on_face[1][p[:, 1]] | on_face[2][p[:, 2]]
+
+
+@functools.cache
+def mask_offset() -> int:
+    """Index shift (0 or 1) between a cell's lower corner and the mask entry skimage reads for that cell."""
+    volume = np.broadcast_to(np.array([-1, 1, 1], np.float32)[:, None, None], (3, 3, 3)).copy()
+    mask = np.zeros((3, 3, 3), dtype=bool)
+    mask[1, 1, 1] = True  # the crossing is only in cells with lower corner x = 0
+    try:
+        marching_cubes(volume, 0.0, mask=mask)
+    except RuntimeError:
+        return 0
+    return 1
+
+
+def march(lat: ChunkLattice, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Marching cubes (level 0) over a lattice's cells given values (N,) at its points.
+
+    Returns local vertices (N,3), faces (M,3) and the dense volume (X+1,Y+1,Z+1), or None when empty.
+    """
+    finite = np.isfinite(values)
+    sampled = values if finite.all() else values[finite]
+    if len(sampled) == 0 or sampled.min() > 0 or sampled.max() <= 0:
+        return None
+    volume = np.zeros(np.add(lat.cells.shape, 1), dtype=np.float32)  # unsampled points: never read
+    volume[tuple(lat.points.T)] = np.where(finite, values, np.float32(0.0))
+    cells = lat.cells
+    if not finite.all():  # drop cells with a non-finite corner
+        bad = np.zeros(volume.shape, dtype=bool)
+        bad[tuple(lat.points[~finite].T)] = True
+        cells = cells.copy()
+        for sl in corner_slices(cells.shape):
+            cells &= ~bad[sl]
+    off = mask_offset()
+    mask = np.zeros(volume.shape, dtype=bool)
+    mask[off : off + cells.shape[0], off : off + cells.shape[1], off : off + cells.shape[2]] = cells
+    try:  # "descent" with (x,y,z) axes orients faces towards positive SDF (free space)
+        verts, faces, _, _ = marching_cubes(volume, 0.0, mask=mask, gradient_direction="descent")
+    except RuntimeError:  # no crossing inside the masked cells
+        return None
+    return verts, faces.astype(np.int64), volume
+
+
+def world_vertices(verts: np.ndarray, volume: np.ndarray, origin: np.ndarray, spacing_m: float) -> np.ndarray:
+    """World positions (N,3) float32 of marching-cubes vertices (N,3) given in local lattice units.
+
+    A crossing on lattice edge (g, g+e) is placed at (g + t e) * spacing with t from the two lattice values,
+    computed in global indices: the result does not depend on which chunk produced it.
+    """
+    c = verts.astype(np.float64)
+    integral = c == np.round(c)  # skimage writes the two fixed coordinates of an edge vertex exactly
+    on_edge = integral.sum(axis=1) == 2
+    out = origin + c  # interior (cell-centre) vertices keep their position
+    at_point = integral.all(axis=1)
+    out[at_point] = origin + np.round(c[at_point])
+    step = np.eye(3, dtype=np.int64)[np.argmin(integral[on_edge], axis=1)]  # (E,3) edge direction
+    lo = np.floor(c[on_edge]).astype(np.int64)
+    v0 = volume[tuple(lo.T)].astype(np.float64)
+    v1 = volume[tuple((lo + step).T)].astype(np.float64)
+    t = np.divide(v0, v0 - v1, out=np.full_like(v0, 0.5), where=v0 != v1)
+    t = np.where(t < SNAP, 0.0, np.where(t > 1.0 - SNAP, 1.0, t))
+    out[on_edge] = (origin + lo) + step * t[:, None]
+    return (out * spacing_m).astype(np.float32)
+
+
+def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge bit-identical vertices, drop faces that collapse and vertices left unused.
+
+    Returns vertices (U,3) float32, faces (M,3) int64 and, per kept vertex, its index in the input.
+    """
+    v = np.ascontiguousarray(vertices, dtype=np.float32) + np.float32(0.0)  # -0.0 -> +0.0
+    _, first, inverse = np.unique(
+        v.view(np.dtype((np.void, 12))).ravel(), return_index=True, return_inverse=True
+    )
+    f = inverse.reshape(-1)[faces]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    used = np.zeros(len(first), dtype=bool)
+    used[f.ravel()] = True
+    remap = np.cumsum(used) - 1
+    source = first[used]
+    return v[source], remap[f], source

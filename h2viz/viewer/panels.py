@@ -1,0 +1,180 @@
+"""The dashboard's control panel: playback, layer toggles, novel-view mode, export and live settings
+(tabs Mapping / View / Export), plus the status panels. Every control turns into a Command for the
+mapping worker or a change to a layer; shared by all browsers (a late joiner sees the same state)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import viser
+
+from h2viz.config import Config
+from h2viz.types import MapSnapshot
+from h2viz.viewer.layers import LayerSet
+from h2viz.viewer.render_loop import MODES, RenderLoop, render_png
+from h2viz.viewer.status import StatusPanels
+from h2viz.worker import MappingWorker
+
+log = logging.getLogger("h2viz.viewer")
+COMMAND_TIMEOUT_S = 600.0
+
+
+class Panels:
+    """Builds the GUI on `server` and wires it to the worker, the layers and the render loop."""
+
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        worker: MappingWorker,
+        layers: LayerSet,
+        renders: RenderLoop,
+        cfg: Config,
+    ) -> None:
+        self.server, self.worker, self.layers, self.renders, self.cfg = server, worker, layers, renders, cfg
+        self.out_dir = Path(cfg.out_dir or "outputs")
+        self.downloads = 0
+        gui = server.gui
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Mapping", icon=viser.Icon.PLAYER_PLAY):
+            self._build_playback(gui)
+            self.status = StatusPanels(gui, with_metrics=worker.source.ground_truth_mesh() is not None)
+        with tabs.add_tab("View", icon=viser.Icon.EYE):
+            self._build_layers(gui)
+            self._build_novel_view(gui)
+        with tabs.add_tab("Export", icon=viser.Icon.DOWNLOAD):
+            self._build_export(gui)
+            self._build_settings(gui)
+
+    # -- building ------------------------------------------------------------------------------
+    def _build_playback(self, gui: viser.GuiApi) -> None:
+        s = self.worker.settings
+        self.pause = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, hint="Stop taking new frames")
+        self.resume = gui.add_button("Resume", icon=viser.Icon.PLAYER_PLAY, disabled=True)
+        self.step = gui.add_button(
+            "Step one frame", icon=viser.Icon.PLAYER_TRACK_NEXT, hint="Map exactly one frame"
+        )
+        self.realtime = gui.add_checkbox(
+            "Real-time", s.realtime, hint="Map the newest frame, drop the ones missed"
+        )
+        self.stride = gui.add_number(
+            "Stride", int(s.stride), min=1, max=100, step=1, hint="Use every k-th frame"
+        )
+        self.pause.on_click(lambda e: self._command(e, "pause"))
+        self.resume.on_click(lambda e: self._command(e, "resume"))
+        self.step.on_click(lambda e: self._command(e, "step"))
+        self.realtime.on_update(lambda e: self._command(e, "set", realtime=self.realtime.value))
+        self.stride.on_update(lambda e: self._command(e, "set", stride=int(self.stride.value)))
+
+    def _build_layers(self, gui: viser.GuiApi) -> None:
+        L = self.layers
+        with gui.add_folder("Layers"):
+            mesh = gui.add_checkbox("Mesh", L.mesh.enabled)
+            opacity = gui.add_slider("Mesh opacity", 0.1, 1.0, 0.05, L.mesh.opacity)
+            leaves = gui.add_checkbox("Octree leaves", L.octree.enabled and L.octree.leaves)
+            coarse = gui.add_slider(
+                "Coarser levels", 0, 3, 1, L.octree.coarse_levels if L.octree.enabled else 0
+            )
+            keyframes = gui.add_checkbox(
+                "Keyframes", L.keyframes.enabled, hint="orange: selected, blue: covered"
+            )
+            trajectory = gui.add_checkbox("Trajectory", L.trajectory.enabled)
+            camera = gui.add_checkbox("Current camera", L.camera.enabled)
+            points = gui.add_checkbox("Point cloud", L.camera.points, hint="The current frame's depth points")
+        mesh.on_update(lambda _: L.mesh.set_enabled(mesh.value))
+        opacity.on_update(lambda _: L.mesh.set_opacity(opacity.value))
+        keyframes.on_update(lambda _: L.keyframes.set_enabled(keyframes.value))
+        trajectory.on_update(lambda _: L.trajectory.set_enabled(trajectory.value))
+        camera.on_update(lambda _: L.camera.set_enabled(camera.value))
+        points.on_update(lambda _: L.camera.set_points(points.value))
+
+        def octree(_: Any) -> None:
+            L.octree.set_levels(leaves.value, int(coarse.value))
+            L.octree.set_enabled(leaves.value or coarse.value > 0)
+
+        leaves.on_update(octree)
+        coarse.on_update(octree)
+
+    def _build_novel_view(self, gui: viser.GuiApi) -> None:
+        with gui.add_folder("Novel view"):
+            mode = gui.add_dropdown(
+                "Render", MODES, initial_value=self.renders.mode, hint="Background rendered by the map"
+            )
+            button = gui.add_button(
+                "Render this view", icon=viser.Icon.CAMERA, hint="Full resolution, downloaded as PNG"
+            )
+        mode.on_update(lambda _: self.renders.set_mode(mode.value))
+        button.on_click(lambda e: self._download(e, "view"))
+        self.mode_dropdown = mode
+
+    def _build_export(self, gui: viser.GuiApi) -> None:
+        with gui.add_folder("Export"):
+            ply = gui.add_button("Download mesh (PLY)", icon=viser.Icon.DOWNLOAD)
+            glb = gui.add_button("Download mesh (GLB)", icon=viser.Icon.DOWNLOAD)
+            save = gui.add_button(
+                "Save checkpoint", icon=viser.Icon.DEVICE_FLOPPY, hint=f"Written to {self.out_dir}/"
+            )
+        ply.on_click(lambda e: self._download(e, "ply"))
+        glb.on_click(lambda e: self._download(e, "glb"))
+        save.on_click(self._save)
+
+    def _build_settings(self, gui: viser.GuiApi) -> None:
+        s = self.worker.settings
+        with gui.add_folder("Settings"):
+            rate = gui.add_slider("Mesh updates / s", 0.2, 5.0, 0.1, float(s.mesh_update_hz))
+            res = gui.add_slider("Marching cubes res.", 2, 16, 1, int(self.cfg.mapping.mesh_resolution))
+        rate.on_update(lambda e: self._command(e, "set", mesh_update_hz=float(rate.value)))
+        res.on_update(lambda e: self._command(e, "set", mesh_resolution=int(res.value)))
+
+    # -- actions (run on viser's thread pool) --------------------------------------------------
+    def _command(self, event: Any, kind: str, **args: Any) -> Any:
+        try:
+            return self.worker.submit(kind, **args).result(timeout=COMMAND_TIMEOUT_S)
+        except Exception as e:
+            log.warning("%s failed: %s", kind, e)
+            _notify(event, f"{kind} failed", str(e), error=True)
+            return None
+
+    def _download(self, event: Any, what: str) -> None:
+        client = event.client
+        if client is None:
+            return
+        note = client.add_notification(
+            "Preparing download", f"{what.upper()}...", loading=True, with_close_button=False
+        )
+        try:
+            if what == "view":
+                data, name = render_png(self.worker, client.camera, self.renders.mode), "view.png"
+            else:
+                data = self.worker.submit("export", format=what).result(timeout=COMMAND_TIMEOUT_S)
+                name = f"mesh.{what}"
+            self.downloads += 1
+            client.send_file_download(
+                f"h2viz_{time.strftime('%Y%m%d-%H%M%S')}_{name}", data, save_immediately=True
+            )
+        except Exception as e:
+            log.warning("download of %s failed: %s", what, e)
+            _notify(event, "Download failed", str(e), error=True)
+        finally:
+            note.remove()
+
+    def _save(self, event: Any) -> None:
+        path = self.out_dir / f"checkpoint_{time.strftime('%Y%m%d-%H%M%S')}.pt"
+        saved = self._command(event, "save", path=str(path))
+        if saved is not None:
+            _notify(event, "Checkpoint saved", str(saved))
+
+    # -- refresh -------------------------------------------------------------------------------
+    def update(self, snap: MapSnapshot) -> None:
+        self.pause.disabled = snap.paused or snap.finished
+        self.resume.disabled = not snap.paused or snap.finished
+        self.step.disabled = snap.finished
+        self.status.update(snap)
+
+
+def _notify(event: Any, title: str, body: str, error: bool = False) -> None:
+    client = getattr(event, "client", None)
+    if client is not None:
+        client.add_notification(title, body, auto_close_seconds=8.0, color="red" if error else "green")

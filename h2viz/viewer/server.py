@@ -1,0 +1,145 @@
+"""The dashboard: a local-only viser server whose scene and panels follow the worker's snapshots.
+One thread turns each new snapshot into layer and panel updates; the render loop serves each
+browser's background; GUI callbacks send Commands. Nothing here touches torch."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import viser
+
+from h2viz.config import Config
+from h2viz.types import MapSnapshot
+from h2viz.viewer.layers import LayerSet
+from h2viz.viewer.panels import Panels
+from h2viz.viewer.render_loop import RenderLoop
+from h2viz.worker import MappingWorker
+
+log = logging.getLogger("h2viz.viewer")
+UPDATE_HZ = 5.0  # largest rate of scene / panel refreshes
+
+
+class LocalViserServer(viser.ViserServer):
+    """A ViserServer that never opens a share tunnel (no outbound connections), even on request."""
+
+    def request_share_url(self, verbose: bool = True) -> str | None:
+        log.warning("share links are disabled in h2viz; the dashboard stays on this machine")
+        return None
+
+
+def make_viser_server(host: str, port: int, label: str = "h2viz") -> LocalViserServer:
+    """Start a quiet, local-only viser server (dark theme, no share button)."""
+    with contextlib.redirect_stdout(io.StringIO()):  # viser announces itself on stdout
+        server = LocalViserServer(host=host, port=port, label=label, verbose=False)
+    server.gui.configure_theme(
+        dark_mode=True,
+        show_share_button=False,
+        show_logo=False,
+        brand_color=(40, 150, 255),
+        control_width="large",
+    )
+    # Plain lights, no environment map: its prefiltering stalls software-rendered browsers for seconds.
+    server.scene.configure_environment_map(None)
+    server.scene.configure_default_lights(cast_shadow=False)
+    server.scene.add_light_hemisphere("/lights/sky", sky_color=(255, 255, 255), ground_color=(110, 110, 120))
+    return server
+
+
+def initial_view(T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(up, eye, target) for a first look at a scene from behind and above its first camera."""
+    up = -T_world_camera[:3, 1]
+    axis = int(np.argmax(np.abs(up)))
+    if abs(up[axis]) > 0.85:  # snap to the world axis the camera is nearly level with
+        up = np.sign(up[axis]) * np.eye(3)[axis]
+    forward = T_world_camera[:3, 2] - up * float(T_world_camera[:3, 2] @ up)
+    forward = forward / max(float(np.linalg.norm(forward)), 1e-6)
+    position = T_world_camera[:3, 3]
+    return up, position - 1.5 * forward + 1.2 * up, position + 1.0 * forward
+
+
+class Dashboard:
+    """Serve the live map of `worker` at http://host:port (defaults from cfg.viewer)."""
+
+    def __init__(
+        self, worker: MappingWorker, cfg: Config, host: str | None = None, port: int | None = None
+    ) -> None:
+        self.worker, self.cfg = worker, cfg
+        self.server = make_viser_server(host or cfg.viewer.host, cfg.viewer.port if port is None else port)
+        self.layers = LayerSet(self.server.scene, frustum_scale=max(0.05, 1.0 * cfg.mapping.voxel_size_m))
+        self.renders = RenderLoop(self.server, worker, cfg.viewer.render_width)
+        self.panels = Panels(self.server, worker, self.layers, self.renders, cfg)
+        self.version = 0  # newest snapshot drawn
+        self.bytes_sent = 0  # geometry bytes sent so far
+        self._errors_shown = 0
+        self._view_set = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="h2viz-dashboard", daemon=True)
+
+    @property
+    def url(self) -> str:
+        host = self.server.get_host()
+        shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
+        return f"http://{shown}:{self.server.get_port()}"
+
+    def start(self) -> Dashboard:
+        self._thread.start()
+        self.renders.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10.0)
+        self.renders.stop()
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            t0 = time.monotonic()
+            version, snap = self.worker.slot.wait_newer(self.version, 0.25)
+            try:
+                if snap is not None and version != self.version:
+                    self.version = version
+                    self._draw(snap)
+                self._show_errors()
+            except Exception:  # keep serving; the next snapshot redraws what failed
+                log.exception("dashboard update failed")
+            self._stop.wait(max(0.0, 1.0 / UPDATE_HZ - (time.monotonic() - t0)))
+
+    def _draw(self, snap: MapSnapshot) -> None:
+        if not self._view_set and snap.current_frame is not None:
+            self._set_initial_view(snap.current_frame.T_world_camera)
+        self.bytes_sent += self.layers.update(snap)
+        self.panels.update(snap)
+
+    def _set_initial_view(self, T_world_camera: np.ndarray) -> None:
+        up, eye, target = initial_view(T_world_camera)
+        self.server.scene.set_up_direction(up)
+        self.server.initial_camera.up = up
+        self.server.initial_camera.position = eye
+        self.server.initial_camera.look_at = target
+        for client in self.server.get_clients().values():
+            client.camera.up_direction, client.camera.position, client.camera.look_at = up, eye, target
+        self._view_set = True
+
+    def _show_errors(self) -> None:
+        errors = self.worker.errors
+        if len(errors) == self._errors_shown:
+            return
+        self.panels.status.show_errors(errors)
+        for message in errors[self._errors_shown :]:
+            for client in self.server.get_clients().values():
+                client.add_notification("Mapping problem", message, auto_close_seconds=15.0, color="red")
+        self._errors_shown = len(errors)
+
+    def client_count(self) -> int:
+        return len(self.server.get_clients())
+
+    def clients(self) -> dict[int, Any]:
+        return self.server.get_clients()

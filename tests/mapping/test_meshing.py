@@ -1,0 +1,281 @@
+"""Chunked marching cubes on analytic SDFs: accuracy, watertightness, welding, masks, updates, export."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from h2viz.errors import ConfigError, H2vizError
+from h2viz.mapping.meshing import ChunkedMesher, MeshingError, export_mesh, merge_chunks
+
+VS = 0.1  # voxel size, metres
+SPHERE_R = 0.35
+PLANE_N = np.array([0.36, -0.48, 0.8])  # unit normal, tilted against every grid axis
+PLANE_D = 0.0123
+Fn = Callable[[np.ndarray], np.ndarray]
+
+
+def sphere_sdf(centre: np.ndarray, r: float = SPHERE_R) -> Fn:
+    return lambda p: (np.linalg.norm(p - centre, axis=1) - r).astype(np.float32)
+
+
+def plane_sdf(p: np.ndarray) -> np.ndarray:
+    return (p.astype(np.float64) @ PLANE_N - PLANE_D).astype(np.float32)
+
+
+def position_color(p: np.ndarray) -> np.ndarray:
+    """A colour that varies with position, so a colour taken from the wrong vertex shows up."""
+    return (np.floor(np.asarray(p, dtype=np.float64) * 1000.0) % 256).astype(np.uint8)
+
+
+def voxels_near(sdf: Fn, lo: np.ndarray, n: int, band_m: float = 0.1) -> np.ndarray:
+    """Voxel coords (V,3) in the n^3 block from lo (3,) whose centre is within band_m of the surface."""
+    g = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3) + lo
+    return g[np.abs(sdf((g + 0.5) * VS)) < band_m]
+
+
+def sphere_voxels(centre: np.ndarray) -> np.ndarray:
+    return voxels_near(sphere_sdf(centre), np.floor((centre - 0.6) / VS).astype(np.int64), 13)
+
+
+def plane_voxels() -> np.ndarray:
+    """Voxels within 0.1 m of the tilted plane, over a 1.6 m x 1.6 m patch."""
+    return voxels_near(plane_sdf, np.array([-8, -8, -8]), 16)
+
+
+def sphere_mesh(centre: np.ndarray, chunk_voxels: int) -> tuple[trimesh.Trimesh, dict]:
+    mesher = ChunkedMesher(VS, 8, chunk_voxels)
+    chunks = mesher.update(sphere_voxels(centre), None, sphere_sdf(centre), position_color, 1)
+    return merge_chunks(chunks), chunks
+
+
+def boundary_edges(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Edges (E,2) used by exactly one face."""
+    edges = np.sort(mesh.edges, axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    return uniq[counts == 1]
+
+
+def on_region_border(points: np.ndarray, voxels: np.ndarray) -> np.ndarray:
+    """(N,) bool: the closed voxel boxes touching each point include allocated and unallocated voxels."""
+    u = points / VS
+    lo, hi = np.floor(u - 1e-6).astype(np.int64), np.floor(u + 1e-6).astype(np.int64)
+    allocated = {tuple(v) for v in voxels.tolist()}
+    out = []
+    for a, b in zip(lo.tolist(), hi.tolist(), strict=True):
+        touching = {tuple(c) for c in itertools.product(*zip(a, b, strict=True))}
+        inside = [t in allocated for t in touching]
+        out.append(any(inside) and not all(inside))
+    return np.array(out)
+
+
+def unique_rows(a: np.ndarray) -> int:
+    return len(np.unique(a, axis=0))
+
+
+def test_chunk_keys_floor_negative_coordinates() -> None:
+    mesher = ChunkedMesher(VS, 8, 8)
+    coords = np.array([[-1, -1, -1], [-8, 0, 7], [-9, 0, 8], [7, 8, -8], [-1, -1, -1]])
+    assert mesher.chunks_of(coords) == {(-1, -1, -1), (-1, 0, 0), (-2, 0, 1), (0, 1, -1)}
+    assert mesher.chunks_of(np.array([[0, 0, 0]]), halo=True) == set(itertools.product((-1, 0), repeat=3))
+    assert mesher.chunks_of(np.zeros((0, 3), dtype=np.int64)) == set()
+
+
+@pytest.mark.parametrize("centre", [np.array([0.013, -0.021, 0.034]), np.array([-1.234, -0.567, -2.011])])
+def test_sphere_is_accurate_watertight_welded_and_outward(centre: np.ndarray) -> None:
+    mesh, chunks = sphere_mesh(centre, chunk_voxels=2)
+    assert len(chunks) >= 27  # the sphere spans many 0.2 m chunks
+    err = np.abs(np.linalg.norm(mesh.vertices - centre, axis=1) - SPHERE_R)
+    assert err.max() < 2e-3
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert unique_rows(mesh.vertices) == len(mesh.vertices)
+    outward = np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles_center - centre)
+    assert (outward > 0).all()
+    assert mesh.volume == pytest.approx(4 / 3 * np.pi * SPHERE_R**3, rel=5e-3)
+    np.testing.assert_array_equal(
+        mesh.visual.vertex_colors[:, :3], position_color(mesh.vertices.astype(np.float32))
+    )
+    for chunk in chunks.values():  # within a chunk, vertices are unique and colours belong to them
+        assert unique_rows(chunk.vertices) == len(chunk.vertices)
+        assert chunk.faces.dtype == np.int32 and chunk.colors.dtype == np.uint8 and chunk.version == 1
+
+
+def test_chunk_size_does_not_change_the_merged_mesh() -> None:
+    centre = np.array([0.813, 0.779, 0.834])
+    small, small_chunks = sphere_mesh(centre, chunk_voxels=2)
+    large, large_chunks = sphere_mesh(centre, chunk_voxels=16)
+    assert len(large_chunks) == 1 and len(small_chunks) > 27
+    np.testing.assert_array_equal(np.sort(small.vertices, axis=0), np.sort(large.vertices, axis=0))
+    assert len(small.faces) == len(large.faces)
+
+
+def test_only_corners_of_allocated_voxels_are_sampled_once() -> None:
+    rng = np.random.default_rng(0)
+    voxels = np.unique(rng.integers(-6, 6, size=(40, 3)), axis=0)
+    seen: list[np.ndarray] = []
+
+    def counting_sdf(p: np.ndarray) -> np.ndarray:
+        seen.append(p.copy())
+        return plane_sdf(p)
+
+    ChunkedMesher(VS, 4, 3).update(voxels, None, counting_sdf, position_color, 1)
+    sampled = np.rint(np.concatenate(seen) / (VS / 4)).astype(np.int64)
+    expected = {tuple(v * 4 + k) for v in voxels for k in itertools.product(range(5), repeat=3)}
+    assert len(sampled) == len(expected)  # each lattice point once, shared faces included
+    assert {tuple(p) for p in sampled.tolist()} == expected
+
+
+def test_tilted_plane_has_no_cracks_across_voxels_and_chunks() -> None:
+    voxels = plane_voxels()
+    mesh = merge_chunks(ChunkedMesher(VS, 8, 4).update(voxels, None, plane_sdf, position_color, 1))
+    assert len(mesh.faces) > 1000
+    assert np.abs(mesh.vertices @ PLANE_N - PLANE_D).max() < 1e-4
+    assert unique_rows(mesh.vertices) == len(mesh.vertices)
+    assert mesh.is_winding_consistent
+    assert (mesh.face_normals @ PLANE_N > 0.999).all()  # towards positive SDF
+    edges = boundary_edges(mesh)
+    assert len(edges) > 0
+    assert on_region_border(mesh.vertices[edges].mean(axis=1), voxels).all()
+
+
+def test_missing_voxels_leave_a_hole_exactly_there() -> None:
+    voxels = plane_voxels()
+    removed = (voxels[:, 0] >= 0) & (voxels[:, 0] < 2) & (voxels[:, 1] >= 0) & (voxels[:, 1] < 2)
+    kept = voxels[~removed]
+    full = merge_chunks(ChunkedMesher(VS, 8, 4).update(voxels, None, plane_sdf, position_color, 1))
+    holed = merge_chunks(ChunkedMesher(VS, 8, 4).update(kept, None, plane_sdf, position_color, 1))
+    cell_of_face = {tuple(c) for c in np.floor(holed.triangles_center / VS).astype(np.int64).tolist()}
+    assert not cell_of_face & {tuple(v) for v in voxels[removed].tolist()}
+    # the plane crosses the removed 0.2 m x 0.2 m column over an area of 0.04 / n_z
+    assert full.area - holed.area == pytest.approx(0.04 / PLANE_N[2], abs=1e-4)
+    edges = boundary_edges(holed)
+    mid = holed.vertices[edges].mean(axis=1)
+    assert on_region_border(mid, kept).all()
+    rim = (mid[:, 0] > -1e-6) & (mid[:, 0] < 0.2 + 1e-6) & (mid[:, 1] > -1e-6) & (mid[:, 1] < 0.2 + 1e-6)
+    assert rim.sum() >= 4 * 2 * 8  # at least 2 voxels x 8 cells along each side of the hole
+
+
+def bump_inside_one_chunk(centre: np.ndarray, chunk_m: float) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """A point on the sphere at least 6 cm from the faces of its chunk, and that chunk's key."""
+    for d in itertools.product(np.linspace(-1, 1, 9), repeat=3):
+        if np.linalg.norm(d) == 0:
+            continue
+        q = centre + SPHERE_R * np.asarray(d) / np.linalg.norm(d)
+        key = np.floor(q / chunk_m)
+        if min((q - key * chunk_m).min(), ((key + 1) * chunk_m - q).min()) > 0.06:
+            return q, (int(key[0]), int(key[1]), int(key[2]))
+    raise AssertionError("no sphere point well inside a chunk")
+
+
+def test_dirty_chunk_update_replaces_only_that_chunk() -> None:
+    centre = np.array([0.013, -0.021, 0.034])
+    sdf = sphere_sdf(centre)
+    voxels = sphere_voxels(centre)
+    mesher = ChunkedMesher(VS, 8, 2)
+    before = mesher.update(voxels, None, sdf, position_color, 1)
+    q, key = bump_inside_one_chunk(centre, 2 * VS)
+    assert key in before
+
+    def bumped(p: np.ndarray) -> np.ndarray:
+        w = np.clip(1.0 - np.linalg.norm(p - q, axis=1) / 0.04, 0.0, None)
+        return (sdf(p) - 0.01 * w).astype(np.float32)
+
+    after = mesher.update(voxels, {key}, bumped, position_color, 2)
+    assert after.keys() == before.keys()
+    assert after[key] is not before[key] and after[key].version == 2
+    assert not np.array_equal(after[key].vertices, before[key].vertices)
+    assert all(after[k] is before[k] for k in before if k != key)
+    merged = merge_chunks(after)
+    fresh = merge_chunks(ChunkedMesher(VS, 8, 2).update(voxels, None, bumped, position_color, 2))
+    np.testing.assert_array_equal(np.sort(merged.vertices, axis=0), np.sort(fresh.vertices, axis=0))
+    assert merged.is_watertight
+    again = mesher.update(voxels, [], bumped, position_color, 3)  # nothing dirty: nothing re-meshed
+    assert all(again[k] is after[k] for k in after)
+
+
+def test_voxel_set_changes_drop_or_remesh_chunks() -> None:
+    centre = np.array([0.013, -0.021, 0.034])
+    sdf = sphere_sdf(centre)
+    voxels = sphere_voxels(centre)
+    mesher = ChunkedMesher(VS, 8, 2)
+    before = mesher.update(voxels, None, sdf, position_color, 1)
+    keys = np.floor_divide(voxels, 2)
+    gone = tuple(int(i) for i in keys[0])
+    after = mesher.update(voxels[(keys != gone).any(axis=1)], [], sdf, position_color, 2)
+    assert gone not in after and len(after) == len(before) - 1
+    assert all(after[k] is before[k] for k in after)
+    thinned_key = next(k for k in after if (keys == k).all(axis=1).sum() > 1)
+    drop = np.flatnonzero((keys == thinned_key).all(axis=1))[0]  # one voxel of a still-present chunk
+    thinned = mesher.update(np.delete(voxels, [drop], axis=0), [], sdf, position_color, 3)
+    # the chunk whose voxel set changed and the chunk that came back are re-meshed without being asked
+    assert {k for k, c in thinned.items() if c.version == 3} == {gone, thinned_key}
+
+
+def test_resolution_change_remeshes_everything() -> None:
+    centre = np.array([0.013, -0.021, 0.034])
+    sdf = sphere_sdf(centre)
+    voxels = sphere_voxels(centre)
+    mesher = ChunkedMesher(VS, 8, 4)
+    before = mesher.update(voxels, None, sdf, position_color, 1)
+    mesher.resolution = 4
+    after = mesher.update(voxels, [], sdf, position_color, 2)
+    assert after.keys() == before.keys()
+    assert all(after[k] is not before[k] and after[k].version == 2 for k in after)
+    coarse, fine = merge_chunks(after), merge_chunks(before)
+    assert len(fine.vertices) > 3 * len(coarse.vertices) and coarse.is_watertight
+    with pytest.raises(ConfigError):
+        mesher.resolution = 0
+    with pytest.raises(ConfigError, match="resolution"):
+        ChunkedMesher(VS, 200, 8)
+
+
+def test_bad_callbacks_and_inputs_raise_meshing_errors() -> None:
+    voxels = plane_voxels()
+    mesher = ChunkedMesher(VS, 4, 4)
+    with pytest.raises(MeshingError, match="sdf_fn"):
+        mesher.update(voxels, None, lambda p: plane_sdf(p)[:, None].repeat(2, 1), position_color, 1)
+    with pytest.raises(MeshingError, match="uint8"):
+        mesher.update(voxels, None, plane_sdf, lambda p: position_color(p) / 255.0, 1)
+    with pytest.raises(MeshingError, match="integer"):
+        mesher.update(voxels.astype(np.float64), None, plane_sdf, position_color, 1)
+
+
+def test_non_finite_sdf_values_leave_cells_out(caplog: pytest.LogCaptureFixture) -> None:
+    def partial(p: np.ndarray) -> np.ndarray:
+        s = plane_sdf(p)
+        s[p[:, 0] > 0.3] = np.nan
+        return s
+
+    with caplog.at_level(logging.WARNING):
+        chunks = ChunkedMesher(VS, 8, 4).update(plane_voxels(), None, partial, position_color, 1)
+    mesh = merge_chunks(chunks)
+    assert len(mesh.faces) > 100 and mesh.vertices[:, 0].max() <= 0.3 + 1e-6
+    assert "non-finite" in caplog.text
+
+
+def test_export_round_trips(tmp_path: Path) -> None:
+    mesh, _ = sphere_mesh(np.array([0.013, -0.021, 0.034]), chunk_voxels=4)
+    colors = mesh.visual.vertex_colors[:, :3]
+    export_mesh(mesh, tmp_path / "out" / "map.ply")
+    ply = trimesh.load(tmp_path / "out" / "map.ply", process=False)
+    assert (tmp_path / "out" / "map.ply").read_bytes().startswith(b"ply\nformat binary")
+    np.testing.assert_array_equal(ply.vertices, mesh.vertices)
+    np.testing.assert_array_equal(ply.faces, mesh.faces)
+    np.testing.assert_array_equal(ply.visual.vertex_colors[:, :3], colors)
+    for name in ("map.GLB", "map.obj"):  # suffix case does not matter
+        export_mesh(mesh, tmp_path / name)
+        back = trimesh.load(tmp_path / name, force="mesh", process=False)
+        np.testing.assert_allclose(back.vertices, mesh.vertices, atol=1e-6)
+        np.testing.assert_array_equal(back.faces, mesh.faces)
+        np.testing.assert_array_equal(back.visual.vertex_colors[:, :3], colors)
+    with pytest.raises(MeshingError, match=r"\.ply") as err:
+        export_mesh(mesh, tmp_path / "map.stl")
+    assert isinstance(err.value, H2vizError)
+    with pytest.raises(MeshingError, match="empty"):
+        export_mesh(merge_chunks({}), tmp_path / "empty.ply")

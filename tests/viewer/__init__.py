@@ -1,0 +1,1 @@
+"""Tests of the live dashboard (viser server, layers, panels, headless browser)."""
