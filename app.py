@@ -9,7 +9,7 @@ import logging
 import sys
 
 from h2viz.config import load_config, source_config_file
-from h2viz.viewer.run import run_view
+from h2viz.viewer.server import run_view
 
 
 def main(overrides: list[str]) -> None:

@@ -49,7 +49,7 @@ class SyntheticConfig:
     n_frames: int = 300
     """Number of frames along the hand-held-like trajectory."""
     depth_noise_m: float = 0.0
-    """Standard deviation of Gaussian depth noise added per pixel, metres (scaled by depth^2 / 1 m^2... see docs)."""
+    """Standard deviation of Gaussian noise added to every valid depth pixel, metres (0 = exact depth)."""
     fov_deg: float = 70.0
     """Horizontal field of view of the virtual camera, degrees."""
     prefetch: int = 4
@@ -158,6 +158,11 @@ class MappingConfig:
     """Rays sampled per iteration across the current frame and selected keyframes."""
     step_m: float = 0.01
     """Distance between samples along a ray inside allocated voxels."""
+    band_m: float = 0.15
+    """Training samples every step_m from this far in front of the measured depth to tr behind it..."""
+    free_samples: int = 24
+    """...plus this many stratified free-space candidates per ray, kept where they fall in allocated voxels
+    (-1 = instead sample every step_m of every allocated voxel the ray crosses, as the paper does)."""
     render_temperature: float = 0.05
     """tau in the rendering weights sigmoid(s/tau)*sigmoid(-s/tau), s in truncation units."""
     n_keyframes: int = 10
@@ -184,8 +189,9 @@ class MappingConfig:
     """Marching-cubes samples per leaf voxel edge."""
     chunk_voxels: int = 8
     """Leaf voxels per mesh-chunk edge (chunks are re-meshed only when touched)."""
-    mesh_every: int = 5
-    """Re-extract changed mesh chunks every this many frames (0 = only at the end)."""
+    mesh_every: int = 0
+    """Headless runs: re-extract changed mesh chunks every this many frames (0 = only at the end; the
+    dashboard meshes at its own rate, viewer.mesh_update_hz)."""
     seed: int = 0
     """Seed for ray sampling and parameter initialisation."""
     threads: int = 0
@@ -388,3 +394,15 @@ def from_dict(data: dict[str, Any]) -> Config:
     cfg = Config()
     _merge(cfg, data, "config")
     return cfg
+
+
+DEFAULTS_HEADER = (
+    "# h2viz defaults (the paper's parameters). Every key is documented in h2viz/config.py and listed by\n"
+    "# `h2viz config --docs`. Files passed with --config and per-source files in this folder override it.\n"
+    "# Regenerate after changing a default: python -c 'from h2viz.config import write_defaults; write_defaults()'\n"
+)
+
+
+def write_defaults(path: str | Path = CONFIG_DIR / "default.yaml") -> None:
+    """Write configs/default.yaml from the dataclass defaults."""
+    Path(path).write_text(DEFAULTS_HEADER + yaml.safe_dump(to_dict(Config()), sort_keys=False))

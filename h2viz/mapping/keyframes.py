@@ -2,14 +2,13 @@
 
 A keyframe is stored as the sorted unique int64 ids of the voxels it observed. Internally every id is
 remapped to a dense index (in order of first appearance) and each keyframe becomes a compressed bitmap:
-its non-empty 64-bit words over the dense index. The number of still-uncovered voxels of every keyframe
-(its coverage gain) is kept up to date incrementally, so one selection step costs about the number of
-bitmap words that step newly covers.
+its non-empty 64-bit words over the dense index. Greedy coverage is evaluated lazily: after a pick,
+every keyframe keeps its previous gain (uncovered voxels) as an upper bound, and only keyframes whose
+bound could still beat the best exact gain are recounted, by popcount over their bitmap words.
 """
 
 from __future__ import annotations
 
-import itertools
 from typing import Any
 
 import numpy as np
@@ -18,7 +17,7 @@ from h2viz.errors import CheckpointError, ConfigError, FrameError
 from h2viz.types import KeyframeState
 
 STRATEGIES = ("coverage", "random", "overlap")
-_STATE_KEYS = ("frame_indices", "voxel_ids", "offsets", "covered_ids", "round_member", "selected")
+_STATE_KEYS = "frame_indices voxel_ids offsets covered_ids round_member selected rounds_completed rng_state"
 
 
 def as_voxel_ids(voxel_ids: Any, what: str) -> np.ndarray:
@@ -33,16 +32,11 @@ def voxel_iou(a: np.ndarray, b: np.ndarray) -> float:
     """|a ∩ b| / |a ∪ b| of two sorted unique id arrays (1.0 when both are empty)."""
     if a.size == 0 and b.size == 0:
         return 1.0
-    inter = _count_common(a, b)
-    return inter / (a.size + b.size - inter)
-
-
-def _count_common(a: np.ndarray, b: np.ndarray) -> int:
-    """Number of values present in both sorted unique arrays."""
     if a.size == 0 or b.size == 0:
-        return 0
+        return 0.0
     pos = np.minimum(np.searchsorted(b, a), b.size - 1)
-    return int(np.count_nonzero(b[pos] == a))
+    inter = int(np.count_nonzero(b[pos] == a))
+    return inter / (a.size + b.size - inter)
 
 
 def _to_words(dense: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -105,7 +99,7 @@ class _CoverageBits:
         """The allowed keyframe with the largest gain (the earliest among ties), None if all gains are 0.
         Stale bounds are refreshed only for keyframes that could still beat the best exact one."""
         batch, pos = 64, np.arange(allowed.size)
-        for attempt in itertools.count():
+        while True:
             ub = np.where(allowed, self.bound, 0)  # (n,)
             ex = allowed & self.exact
             g = int(ub[ex].max()) if ex.any() else 0
@@ -114,14 +108,13 @@ class _CoverageBits:
             if not threat.any():
                 return j if g > 0 else None
             rows = np.flatnonzero(threat)
-            if attempt > 0 and rows.size * 4 > allowed.size:  # many contenders: refresh everything
-                self.set_covered(self.covered)
+            if batch > 64 and rows.size * 4 > allowed.size:  # many contenders: refresh every bound
+                self.refresh()
                 continue
             rows = rows[np.lexsort((rows, -ub[rows]))[:batch]]  # the highest bounds first
             self.bound[rows] = self.sizes[rows] - self.counts(self.covered, rows)
             self.exact[rows] = True
             batch *= 4
-        raise AssertionError("unreachable")
 
     def cover(self, j: int) -> None:
         """Mark every voxel of keyframe `j` covered; other bounds become stale (gains only fall)."""
@@ -137,7 +130,11 @@ class _CoverageBits:
         """Replace the covered bits by `mask` (default: none covered) and make every bound exact."""
         self.covered = np.zeros_like(self.covered) if mask is None else mask.astype(np.uint64, copy=True)
         self.n_covered = int(np.bitwise_count(self.covered).sum())
-        self.bound = self.sizes - self.counts(self.covered) if mask is not None else self.sizes.copy()
+        self.refresh()
+
+    def refresh(self) -> None:
+        """Make every gain bound exact."""
+        self.bound = self.sizes - self.counts(self.covered) if self.n_covered else self.sizes.copy()
         self.exact = np.ones(self.sizes.size, bool)
 
 
@@ -265,7 +262,7 @@ class KeyframeSet:
         cur = as_voxel_ids(current_voxel_ids, "current frame")
         inter = self._bits.counts(self._word_mask(self._lookup(cur)[1]))  # (n,)
         union = np.maximum(self._bits.sizes + cur.size - inter, 1)
-        iou = np.where(allowed & (inter > 0), inter / union, -1.0)
+        iou = np.where(allowed, inter / union, -1.0)
         order = np.lexsort((np.arange(iou.size), -iou))[: self.k]
         picks = [int(j) for j in order if iou[j] > 0]
         for j in picks:
@@ -276,7 +273,7 @@ class KeyframeSet:
         """Cover keyframe j's voxels in the current round; complete the round when nothing is left."""
         self._bits.cover(j)
         self._round_member[j] = True
-        if self._bits.n_covered == self._known.size:
+        if self._known.size and self._bits.n_covered == self._known.size:
             self.rounds_completed += 1
             self._bits.set_covered(None)
             self._round_member[:] = False
@@ -330,22 +327,27 @@ class KeyframeSet:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore what `state_dict` returned (the constructor's settings are kept)."""
-        missing = [key for key in (*_STATE_KEYS, "rounds_completed", "rng_state") if key not in state]
+        """Restore what `state_dict` returned (the constructor's settings are kept; on a
+        CheckpointError the set is left empty or unchanged)."""
+        missing = [key for key in _STATE_KEYS.split() if key not in state]
         if missing:
             raise CheckpointError(f"keyframe state lacks {missing}; the checkpoint is incomplete or too old")
         frames, offsets = np.asarray(state["frame_indices"]), np.asarray(state["offsets"])
+        selected = np.asarray(state["selected"], np.int64)
         if offsets.size != frames.size + 1 or np.asarray(state["round_member"]).size != frames.size:
             raise CheckpointError("keyframe state: frame, offset and round arrays disagree in length")
+        if np.any((selected < 0) | (selected >= frames.size)):
+            raise CheckpointError("keyframe state: a selected position lies outside the keyframe set")
         self._clear()
         voxel_ids = np.asarray(state["voxel_ids"], np.int64)
         for i, frame in enumerate(frames):
             self.insert(int(frame), voxel_ids[offsets[i] : offsets[i + 1]])
         known, dense = self._lookup(as_voxel_ids(state["covered_ids"], "keyframe state"))
         if not np.all(known):
+            self._clear()
             raise CheckpointError("keyframe state: covered voxels are not in any keyframe")
         self._bits.set_covered(self._word_mask(dense))
         self._round_member = np.asarray(state["round_member"], bool).copy()
-        self._selected = [int(j) for j in state["selected"]]
+        self._selected = [int(j) for j in selected]
         self.rounds_completed = int(state["rounds_completed"])
         self._rng.bit_generator.state = state["rng_state"]

@@ -22,7 +22,7 @@ from h2viz.mapping.raycast import RenderParams, locate, render_image
 from h2viz.mapping.rays import FrameRays, RayBatch
 from h2viz.mapping.rendering import composite, render_weights
 from h2viz.mapping.losses import mapping_losses
-from h2viz.mapping.sampling import sample_rays
+from h2viz.mapping.sampling import band_samples, sample_rays
 from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
 
 
@@ -136,15 +136,22 @@ class Mapper:
 
     def _step(self, batch: RayBatch) -> dict[str, torch.Tensor]:
         tr = self.cfg.truncation_m
-        samples = sample_rays(self.octree, batch.origins, batch.dirs, batch.depth + tr, self.cfg.step_m, True)
+        c = self.cfg
+        if c.free_samples < 0:  # the paper: every 1 cm of every allocated voxel the ray crosses
+            samples = sample_rays(self.octree, batch.origins, batch.dirs, batch.depth + tr, c.step_m, True)
+        else:  # the truncation band plus stratified free-space samples
+            samples = band_samples(self.octree, batch.origins, batch.dirs, batch.depth, c.band_m, tr, c.step_m, c.free_samples)
         if samples.t.numel() == 0:
             return {"total": torch.zeros(())}
-        sdf, rgb = self.field(samples.points, samples.voxel)
+        sdf, rgb, leaves = self.field.train_forward(samples.points, samples.voxel)
         render = composite(samples, render_weights(samples, sdf, tr, self.cfg.render_temperature), rgb)
         terms = mapping_losses(samples, sdf, render, batch.rgb, batch.depth, self.cfg)
         self.optim.zero_grad()
         terms["total"].backward()
-        self.optim.step()
+        self.optim.step()  # the decoders
+        for leaf in leaves:  # priors and hash tables: only the rows this batch used
+            if leaf.values.grad is not None:
+                self.optim.step_rows(leaf.name, leaf.rows, leaf.values.grad)
         self.touched[torch.unique(samples.voxel).cpu().numpy()] = True
         return {k: v.detach() for k, v in terms.items()}
 

@@ -101,3 +101,32 @@ def sample_rays(
     samples = sample_hits(hits, origins, dirs, step_m, jitter)
     # A sample rounded onto a voxel face may fall in a neighbour; keep the voxel the traversal found.
     return samples
+
+
+
+def band_samples(
+    octree: VoxelOctree,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    depth: torch.Tensor,
+    band_m: float,
+    truncation_m: float,
+    step_m: float,
+    n_free: int,
+) -> Samples:
+    """Training samples where the losses act, without traversing the whole ray: every `step_m` from
+    `band_m` in front of the measured depth to tr behind it, plus `n_free` stratified free-space candidates
+    between the camera and the band; only candidates inside allocated voxels are kept. depth (R,) > 0."""
+    R, dev = depth.shape[0], depth.device
+    n_band = int(round((band_m + truncation_m) / step_m))
+    k = torch.arange(n_band, device=dev, dtype=depth.dtype)
+    t_band = (depth - band_m)[:, None] + (k + torch.rand(R, n_band, device=dev)) * step_m  # (R,B)
+    free_end = (depth - band_m).clamp(min=0.0)
+    j = torch.arange(n_free, device=dev, dtype=depth.dtype)
+    t_free = (j + torch.rand(R, n_free, device=dev)) / max(n_free, 1) * free_end[:, None]  # (R,F)
+    t = torch.cat([t_free, t_band], dim=1)  # (R,F+B) increasing along each row
+    points = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # (R,F+B,3)
+    voxel = octree.lookup_points(points.reshape(-1, 3))  # (R*(F+B),)
+    keep = (voxel >= 0) & (t.reshape(-1) > 0)
+    ray = torch.arange(R, device=dev).repeat_interleave(t.shape[1])
+    return Samples(points.reshape(-1, 3)[keep], t.reshape(-1)[keep], ray[keep], voxel[keep], R)

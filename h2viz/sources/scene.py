@@ -12,10 +12,11 @@ from functools import lru_cache
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from h2viz.geometry import camera_rays
-from h2viz.sources.scene_layout import ROOM_HEIGHT_M, layout
+from h2viz.sources.scene_layout import layout
 from h2viz.sources.scene_mesh import Geometry
 
 BACKGROUND_RGB = np.array([226, 232, 240], dtype=np.uint8)  # what rays that leave the open-top room see
@@ -62,22 +63,33 @@ class Scene:
         faces = np.asarray(geo.mesh.faces)  # (F,3)
         verts = np.asarray(geo.mesh.vertices, dtype=np.float64)  # (N,3)
         self._lock = threading.Lock()
+        self._samples: tuple[cKDTree, np.ndarray] | None = None
         self._caster = RayMeshIntersector(geo.mesh)
         occ = self.parts.occluder[geo.face_part]
         self._occluders = RayMeshIntersector(trimesh.Trimesh(verts, faces[occ], process=False))
         normal = np.asarray(geo.mesh.face_normals, dtype=np.float64)  # (F,3)
-        self._plane = np.concatenate([normal, np.einsum("ij,ij->i", verts[faces[:, 0]], normal)[:, None]], 1)  # (F,4)
+        corner0 = verts[faces[:, 0]]  # (F,3)
+        self._plane = np.column_stack([normal, np.einsum("ij,ij->i", corner0, normal)])  # (F,4) n and n.a
         light = self._bake_light(verts, geo.normals)  # (N,)
         light_a, light_grad = _linear_on_faces(verts, faces, light)
-        # (F,7) float32: first corner, in-plane light gradient, light at the first corner
-        self._face_light = np.concatenate([verts[faces[:, 0]], light_grad, light_a[:, None]], 1).astype(np.float32)
+        # (F,7) first corner, in-plane light gradient, light at the first corner
+        self._face_light = np.column_stack([corner0, light_grad, light_a]).astype(np.float32)
         rgb = self.parts.colors(verts, geo.vert_part) * light[:, None]
         geo.mesh.visual.vertex_colors = _to_uint8(rgb)
+
+    def surface_samples(self) -> tuple[cKDTree, np.ndarray]:
+        """A KD-tree over dense points (N,3) sampled evenly on every surface (about 1.5 cm apart)."""
+        with self._lock:
+            if self._samples is None:
+                n = int(self.mesh.area / 0.015**2)
+                pts, _ = trimesh.sample.sample_surface(self.mesh, n, seed=self.seed)
+                self._samples = (cKDTree(pts), pts)
+            return self._samples
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Min and max corners (3,) of everything in the scene, metres."""
         lo, hi = self.mesh.bounds
-        return lo.copy(), np.maximum(hi, [hi[0], hi[1], ROOM_HEIGHT_M])
+        return lo.copy(), hi.copy()
 
     def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Index (R,) of the first triangle each ray hits, -1 where it hits nothing."""
@@ -89,7 +101,7 @@ class Scene:
         triangles tri (N,), in float64 (Embree itself is float32)."""
         plane = self._plane[tri]  # (N,4) normal and offset
         n = plane[:, :3]
-        o_dot_n = n @ origin if origin.ndim == 1 else np.einsum("ij,ij->i", origin, n)
+        o_dot_n = np.einsum("ij,j->i", n, origin) if origin.ndim == 1 else np.einsum("ij,ij->i", origin, n)
         return (plane[:, 3] - o_dot_n) / np.einsum("ij,ij->i", dirs, n)
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -113,7 +125,7 @@ class Scene:
         """rgb (H,W,3) uint8 and z-depth (H,W) float32 in metres (0 = nothing hit) of a pinhole camera."""
         T = np.asarray(T_world_camera, dtype=np.float64)
         rays = _camera_dirs(np.asarray(K, np.float64).tobytes(), height, width)  # (R,3), camera z = 1
-        dirs = np.einsum("ij,kj->ik", rays, T[:3, :3])
+        dirs = np.einsum("ij,kj->ik", rays, T[:3, :3])  # (R,3) world directions
         tri = self.first_hits(np.broadcast_to(T[:3, 3], dirs.shape), dirs)
         hit = np.flatnonzero(tri >= 0)
         hit = hit[np.argsort(self.face_part[tri[hit]].astype(np.int16), kind="stable")]  # group by part
@@ -138,7 +150,9 @@ class Scene:
         return 0.5 * (0.3 + 0.7 * ao) + 0.55 * sun + 0.15 * fill * ao
 
     @staticmethod
-    def _occlusion(origins: np.ndarray, dirs: np.ndarray, caster: RayMeshIntersector, radius: float) -> np.ndarray:
+    def _occlusion(
+        origins: np.ndarray, dirs: np.ndarray, caster: RayMeshIntersector, radius: float
+    ) -> np.ndarray:
         """Share (N,) of the unit directions (N,D,3) from origins (N,3) that hit within `radius`."""
         n, d = dirs.shape[:2]
         o = np.repeat(origins, d, axis=0)
@@ -173,7 +187,9 @@ def _camera_dirs(K_bytes: bytes, height: int, width: int) -> np.ndarray:
     return dirs
 
 
-def _linear_on_faces(verts: np.ndarray, faces: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _linear_on_faces(
+    verts: np.ndarray, faces: np.ndarray, values: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-face value at the first corner (F,) and gradient (F,3) in the face plane, so that
     value(p) = a + (p - corner0) . grad interpolates the per-vertex `values` (N,) linearly."""
     a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]

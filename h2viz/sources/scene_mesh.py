@@ -29,14 +29,23 @@ def rot_z(yaw_rad: float) -> np.ndarray:
 
 
 def _stops(length_m: float, cuts: np.ndarray) -> np.ndarray:
-    """Sorted grid positions in [0,1]: uniform steps <= MAX_EDGE_M plus the `cuts`, near-duplicates merged."""
-    n = max(1, int(np.ceil(length_m / MAX_EDGE_M)))
-    t = np.unique(np.concatenate([np.linspace(0, 1, n + 1), np.clip(cuts, 0, 1)]))
-    return t[np.concatenate([[True], np.diff(t) * length_m > 2e-3])] if len(t) > 2 else t
+    """Sorted grid positions from 0 to 1: uniform steps <= MAX_EDGE_M plus the `cuts`; uniform stops
+    within 2 mm of a cut give way to it, and the ends stay exactly 0 and 1."""
+    tol = 2e-3 / length_m
+    cuts = np.unique(cuts[(cuts > tol) & (cuts < 1 - tol)])
+    cuts = cuts[np.concatenate([[True], np.diff(cuts) > tol])] if len(cuts) else cuts
+    inner = np.linspace(0, 1, max(1, int(np.ceil(length_m / MAX_EDGE_M))) + 1)[1:-1]
+    if len(cuts):
+        inner = inner[np.min(np.abs(inner[:, None] - cuts[None, :]), axis=1) > tol]
+    return np.sort(np.concatenate([[0.0], inner, cuts, [1.0]]))
 
 
 def grid_quad(
-    corner: np.ndarray, u: np.ndarray, v: np.ndarray, cuts_u: np.ndarray | None = None, cuts_v: np.ndarray | None = None
+    corner: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    cuts_u: np.ndarray | None = None,
+    cuts_v: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Grid over the parallelogram corner + a*u + b*v (a, b in [0, 1]) with edges <= MAX_EDGE_M and extra
     grid lines at the fractions `cuts_u`, `cuts_v`. Returns vertices (N,3) and faces (M,3) wound so
@@ -201,7 +210,9 @@ class MeshBuilder:
             self._append(verts + base, faces, normals, pid)
         return pid
 
-    def buried(self, verts: np.ndarray, faces: np.ndarray, vert_part: np.ndarray, eps_m: float = 2e-3) -> np.ndarray:
+    def buried(
+        self, verts: np.ndarray, faces: np.ndarray, vert_part: np.ndarray, eps_m: float = 2e-3
+    ) -> np.ndarray:
         """Faces (F,) hidden inside one solid of another part: all three corners inside (or on) it and
         the face looking into it, like the floor under a cabinet or the back of a picture on a wall.
         A face on a solid's surface that looks away from it (coplanar neighbours) stays."""
@@ -213,10 +224,14 @@ class MeshBuilder:
         xs = verts[order, 0]
         inside = np.zeros(len(verts), dtype=bool)
         solids = [(o, c, R, h, np.inf) for o, c, R, h in self.solid_boxes]
-        solids += [(o, c + [0, 0, 5e-3], np.eye(3), np.array([r, r, 5e-3]), r) for o, c, r in self.solid_discs]
+        solids += [
+            (o, c + [0, 0, 5e-3], np.eye(3), np.array([r, r, 5e-3]), r) for o, c, r in self.solid_discs
+        ]
         for owner, center, R, half, radius in solids:
             reach = float(np.abs(R[0]) @ half) + eps_m  # half extent of the solid along world x
-            idx = order[np.searchsorted(xs, center[0] - reach) : np.searchsorted(xs, center[0] + reach, "right")]
+            idx = order[
+                np.searchsorted(xs, center[0] - reach) : np.searchsorted(xs, center[0] + reach, "right")
+            ]
             local = (verts[idx] - center) @ R  # (n,3) in the solid's frame
             ok = np.all(np.abs(local) <= half + eps_m, axis=1) & (vert_part[idx] != owner)
             inside[idx] = ok & (np.hypot(local[:, 0], local[:, 1]) <= radius + eps_m)
@@ -258,6 +273,7 @@ class PartArrays:
         self.size = np.stack(t.size)  # (P,3)
         self.params = np.array(t.params, dtype=np.float64)  # (P,4)
         self.occluder = np.array(t.occluder, dtype=bool)  # (P,)
+        self._float32 = [x.astype(np.float32) for x in (self.color_a, self.color_b, self.size, self.params)]
 
     def colors(self, points: np.ndarray, pid: np.ndarray) -> np.ndarray:
         """Albedo (N,3) in [0,1] of world points (N,3) on parts pid (N,)."""
@@ -267,14 +283,16 @@ class PartArrays:
         return out
 
     def colors_grouped(self, points: np.ndarray, pid: np.ndarray) -> np.ndarray:
-        """Like `colors` for points already grouped by part (pid sorted): contiguous slices, no copies."""
+        """Like `colors` for points already grouped by part (pid sorted), one slice per part."""
         out = np.empty((len(points), 3), dtype=np.float64)
         starts = np.flatnonzero(np.diff(pid, prepend=-1))
         for lo, hi in zip(starts, np.append(starts[1:], len(pid)), strict=True):
             k = int(pid[lo])
-            local = ((points[lo:hi] - self.origin[k]) @ self.rotation[k]).astype(np.float32)  # (n,3) part frame
+            local = np.einsum(
+                "ij,jk->ik", points[lo:hi] - self.origin[k], self.rotation[k]
+            )  # (n,3) part frame
             out[lo:hi] = albedo(
-                Material(self.material[k]), local, self.color_a[k], self.color_b[k], self.size[k], self.params[k]
+                Material(self.material[k]), local.astype(np.float32), *(x[k] for x in self._float32)
             )
         return out
 

@@ -12,12 +12,12 @@ from enum import IntEnum
 
 import numpy as np
 
-WHITE = np.array([0.93, 0.92, 0.88])
-BOOK_COLORS = np.array(
+WHITE = np.float32([0.93, 0.92, 0.88])
+BOOK_COLORS = np.float32(
     [[0.62, 0.16, 0.14], [0.16, 0.30, 0.52], [0.20, 0.45, 0.32], [0.85, 0.66, 0.22], [0.30, 0.22, 0.40],
      [0.90, 0.86, 0.76], [0.12, 0.14, 0.16], [0.78, 0.40, 0.22], [0.45, 0.62, 0.70]]
 )  # fmt: skip
-BALL_COLORS = np.array(
+BALL_COLORS = np.float32(
     [[0.86, 0.18, 0.16], [0.95, 0.95, 0.92], [0.15, 0.38, 0.75], [0.96, 0.78, 0.15], [0.95, 0.95, 0.92],
      [0.20, 0.62, 0.30]]
 )  # fmt: skip
@@ -86,27 +86,29 @@ def _floor(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: n
 
 def _rug(u: np.ndarray, v: np.ndarray, half: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Rug pattern at (u, v) from its centre: bound edge, border band, diamond field, medallion."""
-    cream = np.array([0.90, 0.84, 0.70])
+    cream = np.float32([0.90, 0.84, 0.70])
     edge = np.minimum(half[:, 0] - np.abs(u), half[:, 1] - np.abs(v))
     fu, fv = u / 0.3 - np.round(u / 0.3), v / 0.3 - np.round(v / 0.3)
     d = np.abs(fu) + np.abs(fv)  # 0 at lattice points, 1 between them
     out = np.tile(cream, (len(u), 1))
-    out = _mix(out, b * 0.9 + 0.08, (d < 0.28).astype(float))
-    out = _mix(out, b * 0.6, (np.abs(d - 0.5) < 0.05).astype(float))
+    out = _mix(out, b * 0.9 + 0.08, (d < 0.28).astype(np.float32))
+    out = _mix(out, b * 0.6, (np.abs(d - 0.5) < 0.05).astype(np.float32))
     ell = (u / (half[:, 0] * 0.42)) ** 2 + (v / (half[:, 1] * 0.42)) ** 2
-    out = _mix(out, b, (ell < 1.0).astype(float))
-    out = _mix(out, cream * 0.95, (np.abs(ell - 0.55) < 0.08).astype(float))
-    out = _mix(out, b * 0.85, ((edge > 0.03) & (edge < 0.17)).astype(float))
-    out = _mix(out, cream, ((edge > 0.185) & (edge < 0.2)).astype(float))
-    return _mix(out, b * 0.45, (edge <= 0.03).astype(float))
+    out = _mix(out, b, (ell < 1.0).astype(np.float32))
+    out = _mix(out, cream * 0.95, (np.abs(ell - 0.55) < 0.08).astype(np.float32))
+    out = _mix(out, b * 0.85, ((edge > 0.03) & (edge < 0.17)).astype(np.float32))
+    out = _mix(out, cream, ((edge > 0.185) & (edge < 0.2)).astype(np.float32))
+    return _mix(out, b * 0.45, (edge <= 0.03).astype(np.float32))
 
 
 def _wall(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: np.ndarray) -> np.ndarray:
     u, z = p[:, 0], p[:, 2]
     stripe = np.floor(u / 0.12) % 2
     out = a * (0.97 + 0.05 * stripe)[:, None]
-    dots = ((u / 0.24 - np.round(u / 0.24)) ** 2 + ((z - 0.12) / 0.24 - np.round((z - 0.12) / 0.24)) ** 2) * 0.0576
-    out = _mix(out, a * 0.82, (dots < 0.018**2).astype(float))
+    dots = (
+        (u / 0.24 - np.round(u / 0.24)) ** 2 + ((z - 0.12) / 0.24 - np.round((z - 0.12) / 0.24)) ** 2
+    ) * 0.0576
+    out = _mix(out, a * 0.82, (dots < 0.018**2).astype(np.float32))
     panel = (z < 0.9) * (1.0 - 0.35 * _line(u, 0.15, 0.003))
     out = np.where((z < 0.9)[:, None], b * panel[:, None], out)
     trim = (z < 0.1) | ((z > 0.9) & (z < 0.95)) | (z > 2.52)
@@ -130,18 +132,18 @@ def _fabric(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: 
     edge = np.min(size - np.abs(p), axis=1)  # distance to the nearest box face, metres
     piping = (edge < 0.012) & (np.sum(size - np.abs(p) < 0.012, axis=1) >= 2)
     out = a * (0.97 + 0.06 * check + 0.05 * _smooth(p, 0.5, 2.0))[:, None]
-    return _mix(out, a * 0.7, piping.astype(float))
+    return _mix(out, a * 0.7, piping.astype(np.float32))
 
 
 def _cardboard(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: np.ndarray) -> np.ndarray:
     out = a * (1.0 + 0.04 * _smooth(p, 0.3, 0.2))[:, None]
     tape = (np.abs(p[:, 0]) < 0.03) & (p[:, 2] > size[:, 2] - 0.12)
-    out = _mix(out, np.array([0.82, 0.70, 0.48]), tape.astype(float))
+    out = _mix(out, np.float32([0.82, 0.70, 0.48]), tape.astype(np.float32))
     lx, lz = np.abs(p[:, 0] + 0.3 * size[:, 0]), np.abs(p[:, 2] + 0.1 * size[:, 2])
     label = (p[:, 1] < -size[:, 1] + 0.002) & (lx < 0.45 * size[:, 0]) & (lz < 0.3 * size[:, 2])
-    out = _mix(out, WHITE, label.astype(float))
+    out = _mix(out, WHITE, label.astype(np.float32))
     text = label & (lx < 0.35 * size[:, 0]) & (_line(lz, 0.03, 0.004) > 0.5) & (lz < 0.2 * size[:, 2])
-    return _mix(out, np.array([0.15, 0.15, 0.15]), text.astype(float))
+    return _mix(out, np.float32([0.15, 0.15, 0.15]), text.astype(np.float32))
 
 
 def _ceramic(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: np.ndarray) -> np.ndarray:
@@ -149,7 +151,7 @@ def _ceramic(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm:
     wave = p[:, 2] + 0.012 * np.sin(5 * ang)
     band = np.floor(wave / 0.045) % 2
     out = _mix(a, b, band)
-    return _mix(out, np.array([0.80, 0.62, 0.25]), _line(wave, 0.045, 0.0025))
+    return _mix(out, np.float32([0.80, 0.62, 0.25]), _line(wave, 0.045, 0.0025))
 
 
 def _metal(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: np.ndarray) -> np.ndarray:
@@ -159,31 +161,31 @@ def _metal(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: n
 def _shade(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: np.ndarray) -> np.ndarray:
     pleat = 0.5 + 0.5 * np.cos(36 * np.arctan2(p[:, 1], p[:, 0]))
     trim = (np.abs(p[:, 2] - size[:, 2] + 0.02) < 0.012) | (np.abs(p[:, 2] - size[:, 2] * 0.63) < 0.012)
-    return _mix(a * (1.0 - 0.08 * pleat)[:, None], b, trim.astype(float))
+    return _mix(a * (1.0 - 0.08 * pleat)[:, None], b, trim.astype(np.float32))
 
 
 def _book(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: np.ndarray) -> np.ndarray:
     base = BOOK_COLORS[prm[:, 0].astype(int) % len(BOOK_COLORS)]
     zr = p[:, 2] / size[:, 2]  # -1 bottom .. 1 top
-    gold = (np.abs(np.abs(zr) - 0.78) < 0.05).astype(float)
-    title = ((np.abs(zr - 0.2) < 0.22) & (np.abs(p[:, 0]) < 0.6 * size[:, 0])).astype(float)
-    return _mix(_mix(base, base * 0.55, title), np.array([0.85, 0.7, 0.3]), gold)
+    gold = (np.abs(np.abs(zr) - 0.78) < 0.05).astype(np.float32)
+    title = ((np.abs(zr - 0.2) < 0.22) & (np.abs(p[:, 0]) < 0.6 * size[:, 0])).astype(np.float32)
+    return _mix(_mix(base, base * 0.55, title), np.float32([0.85, 0.7, 0.3]), gold)
 
 
 def _painting(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: np.ndarray) -> np.ndarray:
     x, z = p[:, 0], p[:, 2]
     frame = np.minimum(size[:, 0] - np.abs(x), size[:, 2] - np.abs(z)) < 0.045
     ridge = np.sin(np.pi * np.minimum(size[:, 0] - np.abs(x), size[:, 2] - np.abs(z)) / 0.045)
-    wood = np.array([0.36, 0.23, 0.13]) * (0.8 + 0.35 * ridge)[:, None]
+    wood = np.float32([0.36, 0.23, 0.13]) * (0.8 + 0.35 * ridge)[:, None]
     horizon = -0.1 * size[:, 2] + 0.15 * size[:, 2] * np.sin(x / size[:, 0] * 4.0 + prm[:, 1])
-    sky = _mix(np.array([0.98, 0.85, 0.62]), np.array([0.45, 0.65, 0.85]), np.clip(z / size[:, 2], 0, 1))
+    sky = _mix(np.float32([0.98, 0.85, 0.62]), np.float32([0.45, 0.65, 0.85]), np.clip(z / size[:, 2], 0, 1))
     sun = (x - 0.4 * size[:, 0]) ** 2 + (z - 0.45 * size[:, 2]) ** 2 < (0.12 * size[:, 2]) ** 2
     land = _mix(b, b * 0.55, np.clip((horizon - z) / size[:, 2], 0, 1))
     scape = np.where((z < horizon)[:, None], land, np.where(sun[:, None], [0.99, 0.93, 0.7], sky))
     cell = _hash(np.floor((x + 1) / (0.27 * size[:, 0])), np.floor((z + 1) / (0.3 * size[:, 2])), 3)
     blocks = np.where((cell < 0.2)[:, None], a, np.where((cell > 0.8)[:, None], b, WHITE))
     grid = np.maximum(_line(x, 0.27 * size[:, 0], 0.006), _line(z, 0.3 * size[:, 2], 0.006))
-    blocks = _mix(blocks, np.array([0.1, 0.1, 0.1]), grid)
+    blocks = _mix(blocks, np.float32([0.1, 0.1, 0.1]), grid)
     canvas = np.where((prm[:, 0] > 0.5)[:, None], blocks, scape)
     return np.where(frame[:, None], wood, canvas)
 
@@ -204,9 +206,9 @@ def _window(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm: 
     border = np.minimum(size[:, 0] - np.abs(x), size[:, 2] - np.abs(z)) < 0.06
     mullion = (np.abs(x) < 0.02) | (np.abs(z - 0.15 * size[:, 2]) < 0.02)
     t = np.clip(0.5 + 0.5 * z / size[:, 2], 0, 1)
-    sky = _mix(np.array([0.85, 0.92, 0.97]), np.array([0.50, 0.70, 0.92]), t)
-    cloud = np.clip(2.5 * (_smooth(p * np.array([1.0, 1.0, 2.5]), 0.6, prm[:, 3]) - 0.25), 0, 1)
-    sky = _mix(sky, np.array([0.97, 0.97, 0.97]), cloud)
+    sky = _mix(np.float32([0.85, 0.92, 0.97]), np.float32([0.50, 0.70, 0.92]), t)
+    cloud = np.clip(2.5 * (_smooth(p * np.float32([1.0, 1.0, 2.5]), 0.6, prm[:, 3]) - 0.25), 0, 1)
+    sky = _mix(sky, np.float32([0.97, 0.97, 0.97]), cloud)
     return np.where((border | mullion)[:, None], WHITE, sky)
 
 
@@ -216,10 +218,10 @@ def _cabinet(p: np.ndarray, a: np.ndarray, b: np.ndarray, size: np.ndarray, prm:
     door_w = 2 * size[:, 0] / np.maximum(prm[:, 0], 1)
     u = p[:, 0] + size[:, 0]
     gap = (_line(u, door_w, 0.002) > 0) | (np.abs(p[:, 2] - 0.5 * size[:, 2]) < 0.003)
-    out = _mix(out, a * 0.5, (front & gap).astype(float))
+    out = _mix(out, a * 0.5, (front & gap).astype(np.float32))
     du = u - door_w * (np.floor(u / door_w) + 0.5)
     knob = front & ((np.abs(du) - 0.3 * door_w) ** 2 + (p[:, 2] - 0.2 * size[:, 2]) ** 2 < 0.015**2)
-    return _mix(out, np.array([0.75, 0.6, 0.3]), knob.astype(float))
+    return _mix(out, np.float32([0.75, 0.6, 0.3]), knob.astype(np.float32))
 
 
 Albedo = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]

@@ -18,66 +18,12 @@ import trimesh
 
 from h2viz.config import SourceConfig
 from h2viz.errors import FrameError, SourceError
-from h2viz.geometry import look_at
 from h2viz.sources.base import FrameSource
 from h2viz.sources.scene import Scene, build_scene
-from h2viz.sources.scene_layout import ROOM_X_M, ROOM_Y_M
+from h2viz.sources.scene_trajectory import trajectory
 from h2viz.types import RgbdFrame
 
 FPS = 30.0  # timestamps are frame index / FPS
-LOOP_RADII_M = np.array([1.6, 1.1])  # half extents along x and y of the loop around the room centre
-LOOP_SQUARENESS = 4.0  # superellipse exponent: 2 = ellipse, larger = closer to the room's corners
-HEIGHT_RANGE_M = (1.25, 1.8)
-YAW_SWEEP = (1.9, 3)  # amplitude (rad) and count per loop of the sweeps around "look at the centre"
-AIM_HEIGHT_M = (0.65, 1.25, 5)  # height looked at along the heading: mean, amplitude, cycles per loop
-
-
-def _wobble(rng: np.random.Generator, s: np.ndarray, amplitude: float, harmonics: range) -> np.ndarray:
-    """Smooth closed-loop noise over s in [0,1): integer harmonics with random phases, amplitude ~ 1/k."""
-    out = np.zeros_like(s)
-    for k in harmonics:
-        out += amplitude / k * np.sin(2 * np.pi * k * s + rng.uniform(0, 2 * np.pi))
-    return out
-
-
-def _distance_to_walls(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """Horizontal distance (n,) from (x, y) along heading `yaw` to the room's walls."""
-    dx, dy = np.cos(yaw), np.sin(yaw)
-    with np.errstate(divide="ignore"):
-        tx = np.where(dx > 0, (ROOM_X_M / 2 - x) / dx, (-ROOM_X_M / 2 - x) / dx)
-        ty = np.where(dy > 0, (ROOM_Y_M / 2 - y) / dy, (-ROOM_Y_M / 2 - y) / dy)
-    return np.minimum(np.abs(tx), np.abs(ty))
-
-
-def trajectory(seed: int, n_frames: int) -> np.ndarray:
-    """T_world_camera (n,4,4) of a hand-held-like loop around the room centre: varied height, slow yaw
-    sweeps between the room's middle and its walls, pitch and roll wobble, all smooth and closed."""
-    rng = np.random.default_rng([seed, 1])
-    s = np.arange(n_frames) / max(n_frames, 1)  # (n,) fraction of the loop
-    theta = rng.uniform(0, 2 * np.pi) + 2 * np.pi * s
-    p, (a, b) = LOOP_SQUARENESS, LOOP_RADII_M
-    radius = (np.abs(np.cos(theta) / a) ** p + np.abs(np.sin(theta) / b) ** p) ** (-1.0 / p)
-    x = radius * np.cos(theta) + _wobble(rng, s, 0.1, range(2, 6))
-    y = radius * np.sin(theta) + _wobble(rng, s, 0.1, range(2, 6))
-    lo, hi = HEIGHT_RANGE_M
-    z = (lo + hi) / 2 + (hi - lo) / 2 * 0.85 * np.sin(2 * np.pi * 2 * s + rng.uniform(0, 6))
-    z += _wobble(rng, s, 0.03, range(3, 7))
-    sweep = YAW_SWEEP[0] * np.sin(2 * np.pi * YAW_SWEEP[1] * s + rng.uniform(0, 6))
-    yaw = theta + np.pi + sweep + _wobble(rng, s, 0.15, range(4, 8))
-    mean, amp, cycles = AIM_HEIGHT_M
-    aim_z = mean + amp * np.sin(2 * np.pi * cycles * s + rng.uniform(0, 6))  # height looked at over there
-    reach = _distance_to_walls(x, y, yaw)
-    pitch = np.clip(np.arctan2(aim_z - z, reach), -0.8, 0.2) + _wobble(rng, s, 0.04, range(5, 9))
-    roll = _wobble(rng, s, 0.06, range(3, 8))
-    forward = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], 1)
-    poses = np.empty((n_frames, 4, 4))
-    for i in range(n_frames):  # one pose per frame, not a per-pixel loop
-        eye = np.array([x[i], y[i], np.clip(z[i], lo, hi)])
-        T = look_at(eye, eye + forward[i])
-        c, sn = np.cos(roll[i]), np.sin(roll[i])
-        T[:3, :2] = T[:3, :2] @ np.array([[c, -sn], [sn, c]])  # roll about the optical axis
-        poses[i] = T
-    return poses
 
 
 def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
@@ -103,7 +49,7 @@ class SyntheticSource(FrameSource):
             raise SourceError("synthetic source: n_frames must be >= 1, depth_noise_m and prefetch >= 0")
         self.scene: Scene = build_scene(sc.seed)
         self.K = intrinsics(sc.width, sc.height, sc.fov_deg)
-        self.poses = trajectory(sc.seed, sc.n_frames)  # (n,4,4)
+        self.poses = trajectory(self.scene, sc.n_frames)  # (n,4,4)
         self._pending: dict[int, Future[RgbdFrame]] = {}
         self._pool: ThreadPoolExecutor | None = None
         self._lock = threading.Lock()
@@ -139,9 +85,14 @@ class SyntheticSource(FrameSource):
             noise = rng.normal(0.0, sc.depth_noise_m, depth.shape).astype(np.float32)
             depth = np.where(valid, np.maximum(depth + noise, 1e-3), 0.0).astype(np.float32)
         return RgbdFrame(
-            index=index, timestamp=index / FPS, rgb=rgb, depth_m=depth, K=self.K.copy(),
-            T_world_camera=self.poses[index].copy(), name=f"synthetic frame {index}",
-        )  # fmt: skip
+            index=index,
+            timestamp=index / FPS,
+            rgb=rgb,
+            depth_m=depth,
+            K=self.K.copy(),
+            T_world_camera=self.poses[index].copy(),
+            name=f"synthetic frame {index}",
+        )
 
     def _prefetch_after(self, key: int) -> None:
         """Start rendering the next `prefetch` selected frames after `key` in the background."""

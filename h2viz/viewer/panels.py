@@ -40,7 +40,7 @@ class Panels:
         tabs = gui.add_tab_group()
         with tabs.add_tab("Mapping", icon=viser.Icon.PLAYER_PLAY):
             self._build_playback(gui)
-            self.status = StatusPanels(gui, with_metrics=worker.source.ground_truth_mesh() is not None)
+            self.status = StatusPanels(gui)
         with tabs.add_tab("View", icon=viser.Icon.EYE):
             self._build_layers(gui)
             self._build_novel_view(gui)

@@ -1,6 +1,7 @@
 """The dashboard: a local-only viser server whose scene and panels follow the worker's snapshots.
 One thread turns each new snapshot into layer and panel updates; the render loop serves each
-browser's background; GUI callbacks send Commands. Nothing here touches torch."""
+browser's background; GUI callbacks send Commands. `run_view` (what `h2viz view` and `python app.py`
+call) composes source + mapper -> MappingWorker -> Dashboard; only it imports the mapper (torch)."""
 
 from __future__ import annotations
 
@@ -9,12 +10,15 @@ import io
 import logging
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import viser
 
 from h2viz.config import Config
+from h2viz.sources.base import make_source
 from h2viz.types import MapSnapshot
 from h2viz.viewer.layers import LayerSet
 from h2viz.viewer.panels import Panels
@@ -143,3 +147,58 @@ class Dashboard:
 
     def clients(self) -> dict[int, Any]:
         return self.server.get_clients()
+
+
+# ------------------------------------------------------------------------------------ composition
+
+
+@dataclass
+class RunningView:
+    """A started worker and its dashboard."""
+
+    worker: MappingWorker
+    dashboard: Dashboard
+
+    @property
+    def url(self) -> str:
+        return self.dashboard.url
+
+    def stop(self) -> None:
+        self.dashboard.stop()
+        self.worker.stop()
+
+
+def build_worker(cfg: Config) -> MappingWorker:
+    """Open the configured source and a fresh mapper (the mapper module imports torch)."""
+    from h2viz.mapping.mapper import Mapper
+
+    source = make_source(cfg.source)
+    return MappingWorker(source, Mapper(cfg.mapping), cfg)
+
+
+def start_view(cfg: Config, worker: MappingWorker | None = None) -> RunningView:
+    """Start mapping and serve the dashboard on cfg.viewer.host:port; returns at once."""
+    worker = worker or build_worker(cfg)
+    dashboard = Dashboard(worker, cfg)
+    try:
+        worker.start()
+        dashboard.start()
+    except BaseException:
+        dashboard.stop()
+        worker.stop()
+        raise
+    log.info("dashboard at %s", dashboard.url)
+    return RunningView(worker, dashboard)
+
+
+def run_view(cfg: Config, on_ready: Callable[[str], None] | None = None) -> None:
+    """Serve the live dashboard until Ctrl-C; `on_ready` receives the URL once it is up."""
+    view = start_view(cfg)
+    if on_ready is not None:
+        on_ready(view.url)
+    try:
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        log.info("stopping the dashboard")
+    finally:
+        view.stop()

@@ -61,7 +61,7 @@ def plot_data(snap: MapSnapshot, names: list[str]) -> tuple[tuple[np.ndarray, ..
 class StatusPanels:
     """Progress, plots, input images, metrics and errors; `update` refreshes them from a snapshot."""
 
-    def __init__(self, gui: viser.GuiApi, with_metrics: bool) -> None:
+    def __init__(self, gui: viser.GuiApi) -> None:
         self.gui = gui
         self.progress = gui.add_progress_bar(0.0, animated=False, color="blue")
         self.text = gui.add_markdown("Waiting for the first frame...")
@@ -80,7 +80,7 @@ class StatusPanels:
             blank = np.zeros((48, 64, 3), dtype=np.uint8)
             self.rgb_image = gui.add_image(blank, label="colour", format="jpeg")
             self.depth_image = gui.add_image(blank, label="depth", format="jpeg")
-        self.metrics_folder = gui.add_folder("Metrics", visible=with_metrics)
+        self.metrics_folder = gui.add_folder("Metrics", visible=False)  # shown once ground truth is scored
         with self.metrics_folder:
             self.metrics_text = gui.add_markdown("Metrics appear after the first refresh.")
         self.errors_text = gui.add_markdown("", visible=False)

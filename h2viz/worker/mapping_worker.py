@@ -234,9 +234,10 @@ class MappingWorker:
         if item is END:
             self._finished = True
             self._resolve_steps(None)
+            if self._unmeshed or self._mesh_dirty:
+                self._remesh()
             if self._gt is not None:
                 self._refresh_metrics()
-            self._remesh()
             self._publish()
         elif item is not None:
             self._integrate(item)
@@ -300,7 +301,8 @@ class MappingWorker:
         from h2viz.eval.metrics import mesh_metrics, voxel_mask_fn
 
         try:
-            self._remesh()
+            if self._unmeshed or self._mesh_dirty:
+                self._remesh()
             mask = voxel_mask_fn(self.mapper.voxel_coords(), self.mapper.voxel_size_m)
             n, thr = self.settings.metrics_points, self.cfg.eval.threshold_m
             self._metrics = mesh_metrics(self.mapper.mesh(), self._gt, n, thr, gt_mask_fn=mask)

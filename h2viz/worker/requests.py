@@ -89,7 +89,12 @@ def export_mesh_bytes(mapper: Mapper, fmt: str) -> bytes:
 def save_checkpoint(mapper: Mapper, path: str | Path) -> str:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    mapper.save_checkpoint(path)
+    if hasattr(mapper, "save_checkpoint"):
+        mapper.save_checkpoint(path)
+    else:
+        from h2viz.mapping.checkpoint import save_checkpoint as save
+
+        save(mapper, path)
     return str(path)
 
 

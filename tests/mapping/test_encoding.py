@@ -14,6 +14,7 @@ from h2viz.errors import ConfigError, H2vizError
 from h2viz.mapping import encoding
 from h2viz.mapping.encoding import (
     HashGrid,
+    encode_for_compile,
     hash_grid_reference,
     level_cell_sizes,
     spatial_hash,
@@ -72,6 +73,32 @@ def test_forward_matches_reference() -> None:
     ref = hash_grid_reference(x, grid.tables, BASE_CELL_M, SCALE)
     torch.testing.assert_close(out, ref, rtol=0.0, atol=1e-12)
     assert ref.abs().max() > 0.5  # the comparison is between O(1) values
+
+
+def test_compile_friendly_blend_matches() -> None:
+    grid = _grid(seed=15)
+    x = _test_points(500, seed=16)
+    torch.testing.assert_close(
+        encode_for_compile(x, grid.tables, grid.cell_sizes_m), grid(x), rtol=0.0, atol=1e-12
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_compiled_grid_matches_eager() -> None:
+    """torch.compile (needs a C++ compiler on CPU) gives the same values and table gradients."""
+    torch.manual_seed(17)
+    eager = HashGrid(log2_size=14, init_std=1.0)
+    compiled = HashGrid(log2_size=14, init_std=1.0, compile=True)
+    compiled.load_state_dict(eager.state_dict())
+    upstream = torch.randn(3000, 8)
+    for n in (3000, 2000):  # a second size must not break the dynamic-shape graph
+        x = _test_points(n // 3, seed=n).float()
+        for grid in (eager, compiled):
+            grid.zero_grad(set_to_none=True)
+            (grid(x) * upstream[: x.shape[0]]).sum().backward()
+        torch.testing.assert_close(compiled(x), eager(x), rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(compiled.tables.grad, eager.tables.grad, rtol=1e-5, atol=1e-5)
 
 
 def test_gradients_match_reference() -> None:

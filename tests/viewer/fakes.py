@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from h2viz.config import SourceConfig
+from h2viz.config import MappingConfig, SourceConfig
 from h2viz.errors import FrameError
 from h2viz.geometry import camera_rays, look_at
 from h2viz.sources.base import FrameSource
@@ -252,3 +252,43 @@ def chunk(key: tuple[int, int, int], version: int = 1, n_voxels: int = 1) -> Mes
     verts, faces = cube_mesh(voxels.astype(np.int32), 0.1)
     colors = np.full((len(verts), 3), 200, np.uint8)
     return MeshChunk(key, verts, faces, colors, version)
+
+
+def tiny_mapping_config() -> MappingConfig:
+    """A MappingConfig small enough for the real Mapper to take ~0.1 s per 64x48 frame on a CPU."""
+    return MappingConfig(
+        device="cpu",
+        voxel_size_m=0.2,
+        truncation_m=0.1,
+        min_points_per_voxel=2,
+        hash_log2_size=12,
+        rays_per_iter=256,
+        max_iters=2,
+        n_keyframes=2,
+        step_m=0.04,
+        mesh_resolution=4,
+        chunk_voxels=4,
+        threads=1,
+    )
+
+
+def recording_mapper(cfg: MappingConfig, delay_s: float = 0.0):  # noqa: ANN201 (torch-backed class)
+    """The real Mapper, noting the size and mode of every render and sleeping `delay_s` per frame."""
+    from h2viz.mapping.mapper import Mapper
+
+    class RecordingMapper(Mapper):
+        def __init__(self) -> None:
+            super().__init__(cfg)
+            self.rendered: list[tuple[int, int, str]] = []
+
+        def integrate(self, frame: RgbdFrame) -> FrameStats:
+            time.sleep(delay_s)
+            return super().integrate(frame)
+
+        def render(
+            self, K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int, mode: str = "rgb"
+        ):  # noqa: ANN202
+            self.rendered.append((height, width, mode))
+            return super().render(K, T_world_camera, height, width, mode)
+
+    return RecordingMapper()

@@ -1,0 +1,261 @@
+"""MappingWorker: the mapping thread's frame order, real-time dropping, commands, render bands,
+exports, failures and shutdown, against the analytic room and a stand-in mapper; then the real
+Mapper (tiny configuration) on the room and on real 7-Scenes frames."""
+
+from __future__ import annotations
+
+import io
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+
+from h2viz.config import Config
+from h2viz.errors import H2vizError
+from h2viz.sources.base import make_source
+from h2viz.types import KeyframeState
+from h2viz.worker import LatestSlot, MappingWorker, RenderedView, WorkerSettings
+from tests.viewer.fakes import (
+    BoxRoomSource,
+    FakeMapper,
+    intrinsics,
+    recording_mapper,
+    room_pose,
+    tiny_mapping_config,
+    trace_room,
+)
+
+Factory = Callable[..., MappingWorker]
+
+
+@pytest.fixture
+def make_worker() -> Iterator[Factory]:
+    workers: list[MappingWorker] = []
+
+    def make(
+        source: object, mapper: object, paused: bool = False, cfg: Config | None = None, **settings: object
+    ) -> MappingWorker:
+        cfg = cfg or Config()
+        cfg.viewer.start_paused = paused
+        worker = MappingWorker(source, mapper, cfg, WorkerSettings(**settings))  # type: ignore[arg-type]
+        workers.append(worker.start())
+        return worker
+
+    yield make
+    for w in workers:
+        w.stop()
+
+
+def wait_for(worker: MappingWorker, predicate: Callable[..., bool], timeout_s: float = 10.0):  # noqa: ANN201
+    deadline, version = time.monotonic() + timeout_s, 0
+    while time.monotonic() < deadline:
+        version, snap = worker.slot.wait_newer(version, 0.1)
+        if snap is not None and predicate(snap):
+            return snap
+    raise AssertionError("the worker never reached the expected state")
+
+
+def test_latest_slot_keeps_the_newest_value() -> None:
+    slot: LatestSlot[int] = LatestSlot()
+    assert slot.get() == (0, None)
+    slot.put(1)
+    assert slot.put(2) == 2 and slot.get() == (2, 2)
+    assert slot.wait_newer(2, 0.05) == (2, 2)  # times out, returns the current pair
+
+
+def test_every_frame_mode_maps_all_frames_in_order(make_worker: Factory) -> None:
+    source, mapper = BoxRoomSource(n=9), FakeMapper()
+    worker = make_worker(source, mapper)
+    assert worker.wait_finished(10)
+    snap = worker.slot.get()[1]
+    assert [s.index for s in snap.stats] == list(range(9))
+    assert snap.frames_done == snap.frames_total == 9 and snap.finished and snap.dropped == 0
+    np.testing.assert_allclose(snap.trajectory, [room_pose(i, 9) for i in range(9)])
+    assert snap.current_frame is not None and snap.current_frame.index == 8
+    assert len(snap.voxel_coords) == len(mapper.voxel_coords()) > 0
+    assert set(snap.chunks) == set(mapper.mesh_chunks()) and snap.chunks  # final re-mesh included
+    assert snap.metrics["comp_ratio"] > 0  # the room has a ground-truth mesh
+    assert snap.memory_mb > 0
+
+
+def test_stride_and_skipped_frames(make_worker: Factory) -> None:
+    source = BoxRoomSource(n=10, fail_keys=[4])
+    worker = make_worker(source, FakeMapper(), stride=2)
+    assert worker.wait_finished(10)
+    snap = worker.slot.get()[1]
+    assert [s.index for s in snap.stats] == [0, 2, 6, 8] and snap.skipped == 1 and snap.frames_total == 5
+
+
+def test_realtime_mode_takes_the_newest_frame_and_counts_drops(make_worker: Factory) -> None:
+    source = BoxRoomSource(n=40)  # 30 Hz timestamps
+    worker = make_worker(source, FakeMapper(delay_s=0.12), realtime=True)
+    assert worker.wait_finished(20)
+    snap = worker.slot.get()[1]
+    mapped = [s.index for s in snap.stats]
+    assert snap.dropped > 10 and snap.frames_done + snap.dropped == 40
+    assert mapped == sorted(mapped) and mapped[-1] == 39
+
+
+def test_pause_step_resume(make_worker: Factory) -> None:
+    worker = make_worker(BoxRoomSource(n=6), FakeMapper(), paused=True)
+    time.sleep(0.4)
+    assert worker.slot.get()[1].frames_done == 0
+    stats = worker.submit("step").result(5)
+    assert stats.index == 0
+    assert wait_for(
+        worker, lambda s: s.frames_done == 1 and s.paused and bool(s.chunks)
+    )  # re-meshed while idle
+    time.sleep(0.3)
+    assert worker.slot.get()[1].frames_done == 1
+    worker.submit("resume").result(5)
+    assert worker.wait_finished(10) and worker.slot.get()[1].frames_done == 6
+    assert worker.submit("step").result(5) is None  # nothing left to step over
+
+
+def test_render_is_served_between_frames_and_bands_are_stitched(make_worker: Factory) -> None:
+    mapper = FakeMapper(delay_s=0.15)
+    worker = make_worker(BoxRoomSource(n=40), mapper)
+    wait_for(worker, lambda s: s.frames_done >= 2)
+    K, T = intrinsics(200, 150), room_pose(3, 40)
+    before = worker.slot.get()[1].frames_done
+    view = worker.submit(
+        "render", K=K, T_world_camera=T, height=150, width=200, mode="rgb", with_depth=True
+    ).result(10)
+    assert worker.slot.get()[1].frames_done - before <= 2  # served within about one frame's mapping
+    wait_for(worker, lambda s: s.frames_done >= before + 3)  # and mapping goes on
+    assert (
+        isinstance(view, RenderedView)
+        and view.image.shape == (150, 200, 3)
+        and view.depth_m.shape == (150, 200)
+    )
+    worker.submit("pause").result(5)
+    bands = worker.submit("render", K=K, T_world_camera=T, height=150, width=200, mode="depth").result(10)
+    assert [h for h, w, m in mapper.rendered[-2:]] == [96, 54]  # two row bands
+    whole = mapper.render(K, T, 150, 200, "depth")
+    np.testing.assert_array_equal(bands.image, whole)
+    assert bands.depth_m is None and (whole > 0).mean() > 0.5
+
+
+def test_bad_render_requests_fail_their_own_future(make_worker: Factory) -> None:
+    worker = make_worker(BoxRoomSource(n=3), FakeMapper())
+    K, T = intrinsics(20, 10), room_pose(0, 3)
+    with pytest.raises(H2vizError, match="unknown mode"):
+        worker.submit("render", K=K, T_world_camera=T, height=10, width=20, mode="xray").result(5)
+    with pytest.raises(H2vizError, match="unknown command"):
+        worker.submit("fly").result(5)
+    assert worker.wait_finished(10)
+
+
+def test_export_and_save(make_worker: Factory, tmp_path) -> None:  # noqa: ANN001
+    mapper = FakeMapper()
+    worker = make_worker(BoxRoomSource(n=4), mapper)
+    assert worker.wait_finished(10)
+    expected = mapper.mesh()
+    for fmt in ("ply", "glb"):
+        data = worker.submit("export", format=fmt).result(10)
+        mesh = trimesh.load(io.BytesIO(data), file_type=fmt, force="mesh", process=False)
+        assert len(mesh.faces) == len(expected.faces) > 0
+    with pytest.raises(H2vizError, match="unknown mesh format"):
+        worker.submit("export", format="stl").result(5)
+    path = worker.submit("save", path=str(tmp_path / "sub" / "map.npz")).result(5)
+    np.testing.assert_array_equal(np.load(path)["voxels"], mapper.voxel_coords())
+
+
+def test_mesh_is_extracted_every_n_frames(make_worker: Factory) -> None:
+    mapper = FakeMapper()
+    worker = make_worker(BoxRoomSource(n=9), mapper, mesh_every=3, mesh_update_hz=0.0)
+    assert worker.wait_finished(10)
+    assert mapper.mesh_calls == 3  # after frames 3, 6 and 9; nothing left to re-mesh at the end
+
+
+def test_settings_apply_live_and_resolution_remeshes(make_worker: Factory) -> None:
+    mapper = FakeMapper()
+    worker = make_worker(BoxRoomSource(n=3), mapper)
+    before = worker.wait_finished(10) and worker.slot.get()[1].chunks
+    reply = worker.submit("set", mesh_resolution=5, mesh_update_hz=1.5, stride=3).result(5)
+    assert reply["mesh_resolution"] == 5 and reply["stride"] == 3 and worker.settings.mesh_update_hz == 1.5
+    after = wait_for(worker, lambda s: any(s.chunks[k] is not before[k] for k in before)).chunks
+    assert all(after[k] is not before[k] for k in before)  # every chunk re-meshed
+    with pytest.raises(H2vizError, match="unknown setting 'speed'"):
+        worker.submit("set", speed=2).result(5)
+    with pytest.raises(H2vizError, match="stride must be"):
+        worker.submit("set", stride=0).result(5)
+    assert worker.settings.stride == 3
+
+
+def test_mapping_failures_are_reported_and_pause_after_three_in_a_row(make_worker: Factory) -> None:
+    mapper = FakeMapper()
+    mapper.fail_frames = {1, 4, 5, 6}
+    worker = make_worker(BoxRoomSource(n=10), mapper)
+    snap = wait_for(worker, lambda s: s.paused)
+    assert [s.index for s in snap.stats] == [0, 2, 3] and snap.skipped == 4
+    assert len(worker.errors) == 5 and "frame 1" in worker.errors[0] and "paused" in worker.errors[-1]
+    mapper.fail_frames = set()
+    worker.submit("resume").result(5)
+    assert worker.wait_finished(10) and worker.slot.get()[1].frames_done == 6 and worker.alive
+
+
+def test_stop_joins_and_refuses_new_commands(make_worker: Factory) -> None:
+    worker = make_worker(BoxRoomSource(n=200), FakeMapper(delay_s=0.05))
+    wait_for(worker, lambda s: s.frames_done >= 1)
+    worker.stop()
+    assert not worker.alive
+    with pytest.raises(H2vizError, match="not running"):
+        worker.submit("pause").result(1)
+
+
+# ------------------------------------------------------------------------------- the real Mapper
+
+
+def test_real_mapper_in_the_worker(make_worker: Factory, tmp_path) -> None:  # noqa: ANN001
+    from h2viz.mapping.checkpoint import load_checkpoint
+
+    cfg = tiny_mapping_config()
+    worker = make_worker(BoxRoomSource(n=5), recording_mapper(cfg))
+    assert worker.wait_finished(60) and not worker.errors
+    snap = worker.slot.get()[1]
+    assert snap.frames_done == 5 and sum(len(c.faces) for c in snap.chunks.values()) > 0
+    assert snap.keyframes and {kf.state for kf in snap.keyframes} <= set(KeyframeState)
+    assert 0 <= snap.metrics["acc_cm"] < 50  # against the room's ground-truth box
+    K, T = intrinsics(64, 48), room_pose(2, 5)
+    shapes = {"rgb": (48, 64, 3), "depth": (48, 64), "normal": (48, 64, 3), "prior": (48, 64)}
+    for mode, shape in shapes.items():
+        view = worker.submit("render", K=K, T_world_camera=T, height=48, width=64, mode=mode).result(30)
+        assert view.image.shape == shape and np.isfinite(view.image).all()
+    depth = worker.submit("render", K=K, T_world_camera=T, height=48, width=64, mode="depth").result(30).image
+    truth = trace_room(K, T, 48, 64)[0]
+    hit = depth > 0
+    assert hit.mean() > 0.5 and np.median(np.abs(depth[hit] - truth[hit])) < 0.1
+    mesh = trimesh.load(
+        io.BytesIO(worker.submit("export", format="glb").result(30)), file_type="glb", force="mesh"
+    )
+    assert len(mesh.faces) > 0
+    path = worker.submit("save", path=str(tmp_path / "room.pt")).result(30)
+    restored, _ = load_checkpoint(path, cfg)
+    np.testing.assert_array_equal(restored.voxel_coords(), snap.voxel_coords)
+
+
+def test_real_mapper_on_real_data(make_worker: Factory, shared_dataset: Callable[[str], object]) -> None:
+    cfg = Config()
+    cfg.source.path = str(shared_dataset("redkitchen_50"))
+    cfg.source.max_frames, cfg.source.downscale = 3, 4
+    source = make_source(cfg.source)
+    mcfg = replace(tiny_mapping_config(), voxel_size_m=0.1, truncation_m=0.05, step_m=0.02, max_iters=4)
+    worker = make_worker(source, recording_mapper(mcfg), cfg=cfg, stride=5)
+    assert worker.wait_finished(120) and not worker.errors
+    snap = worker.slot.get()[1]
+    assert [s.index for s in snap.stats] == [0, 5, 10] and snap.chunks
+    frame = snap.current_frame
+    view = worker.submit(
+        "render",
+        K=frame.K,
+        T_world_camera=frame.T_world_camera,
+        height=frame.height,
+        width=frame.width,
+        mode="depth",
+    ).result(60)
+    both = (view.image > 0) & (frame.depth_m > 0)
+    assert both.mean() > 0.5 and np.median(np.abs(view.image[both] - frame.depth_m[both])) < 0.05
