@@ -47,6 +47,8 @@ class Run:
     wall_s: float = 0.0
     map_s: list[float] = field(default_factory=list)
     latencies_s: list[float] = field(default_factory=list)
+    extract_s: list[float] = field(default_factory=list)  # frame mapped -> its mesh extracted
+    remesh_s: list[float] = field(default_factory=list)  # duration of each mesh extraction
     update_bytes: list[int] = field(default_factory=list)
     update_chunks: list[int] = field(default_factory=list)
     whole_mesh_bytes: int = 0
@@ -59,7 +61,7 @@ def timed_mapper(cfg: Config) -> Any:
     class TimedMapper(Mapper):
         def __init__(self) -> None:
             super().__init__(cfg.mapping)
-            self.meshed: list[tuple[int, float, int]] = []  # (version after, time, frames integrated)
+            self.meshed: list[tuple[int, float, float, int]] = []  # (version, start, end, frames integrated)
             self.integrated = 0
 
         def integrate(self, frame: Any) -> Any:
@@ -68,8 +70,9 @@ def timed_mapper(cfg: Config) -> Any:
             return stats
 
         def update_mesh(self) -> None:
+            t0 = time.time()
             super().update_mesh()
-            self.meshed.append((self.version, time.time(), self.integrated))
+            self.meshed.append((self.version, t0, time.time(), self.integrated))
 
     return TimedMapper()
 
@@ -144,21 +147,32 @@ def _wait_clients(dashboard: Dashboard, pages: list[Any], n: int) -> None:
         pages[0].wait_for_timeout(200)
 
 
+def _first_arrivals(names: list[str], t_sent: float, arrivals: list) -> list[tuple[float, int]]:
+    """(time, bytes) of the first arrival of each node name at or after `t_sent` (none if one is missing)."""
+    first: dict[str, tuple[float, int]] = {}
+    for t, n, b in arrivals:  # in arrival order
+        if n in names and n not in first and t >= t_sent - 0.01:
+            first[n] = (t, b)
+    return list(first.values()) if len(first) == len(set(names)) else []
+
+
 def _latencies(run: Run, worker: MappingWorker, mapper: Any, sends: list, arrivals: list) -> None:
-    """Per frame: first browser arrival of a mesh update built after the frame was mapped."""
+    """Per frame: first browser arrival of a mesh update extracted after the frame was mapped."""
     frame_times = sorted(worker.mapped_at.values())
-    received: list[tuple[float, int, int, int]] = []  # (arrival, chunk version, bytes, chunks) per update
+    received: list[tuple[float, int]] = []  # (arrival of the whole update, newest chunk version)
     for t_sent, version, names in sends:
-        got = [(t, b) for t, n, b in arrivals if n in names and t >= t_sent - 0.01]
-        if got and len({n for t, n, b in arrivals if n in names and t >= t_sent - 0.01}) == len(set(names)):
-            received.append((max(t for t, _ in got), version, sum(b for _, b in got), len(names)))
-    run.update_bytes = [r[2] for r in received]
-    run.update_chunks = [r[3] for r in received]
+        got = _first_arrivals(names, t_sent, arrivals)
+        if got:
+            received.append((max(t for t, _ in got), version))
+            run.update_bytes.append(sum(b for _, b in got))
+            run.update_chunks.append(len(names))
+    run.remesh_s = [t1 - t0 for _, t0, t1, _ in mapper.meshed]
     for i, t_mapped in enumerate(frame_times):
-        versions = [v for v, _, n in mapper.meshed if n >= i + 1]  # mesh updates that include frame i
-        if not versions:
+        meshes = [(v, t1) for v, _, t1, n in mapper.meshed if n >= i + 1]  # extractions including frame i
+        if not meshes:
             continue
-        later = [t for t, v, _, _ in received if v >= versions[0]]
+        run.extract_s.append(meshes[0][1] - t_mapped)
+        later = [t for t, v in received if v >= meshes[0][0]]
         if later:
             run.latencies_s.append(min(later) - t_mapped)
 
@@ -194,6 +208,8 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
         latency = f"frame mapped -> its mesh change in the browser, ms ({len(r.latencies_s)} frames)"
         rows = [
             (latency, _median_max(r.latencies_s, 1000)),
+            ("  of which: frame mapped -> its mesh extracted, ms", _median_max(r.extract_s, 1000)),
+            ("mesh extraction (update_mesh) duration, ms", _median_max(r.remesh_s, 1000)),
             ("mesh updates received", str(len(r.update_bytes))),
             ("kB per mesh update", _median_max([float(b) for b in r.update_bytes], 1e-3)),
             ("chunks per mesh update", _median_max([float(c) for c in r.update_chunks])),

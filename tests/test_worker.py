@@ -18,6 +18,7 @@ from h2viz.errors import H2vizError
 from h2viz.sources.base import make_source
 from h2viz.types import KeyframeState
 from h2viz.worker import LatestSlot, MappingWorker, RenderedView, WorkerSettings
+from h2viz.worker.requests import scaled_intrinsics
 from tests.viewer.fakes import (
     BoxRoomSource,
     FakeMapper,
@@ -137,6 +138,14 @@ def test_render_is_served_between_frames_and_bands_are_stitched(make_worker: Fac
     whole = mapper.render(K, T, 150, 200, "depth")
     np.testing.assert_array_equal(bands.image, whole)
     assert bands.depth_m is None and (whole > 0).mean() > 0.5
+    coarse = worker.submit(
+        "render", K=K, T_world_camera=T, height=150, width=200, mode="rgb", with_depth=True, depth_downscale=2
+    ).result(10)
+    assert mapper.rendered[-1] == (75, 100, "depth")  # depth at half resolution
+    half = mapper.render(scaled_intrinsics(K, 2), T, 75, 100, "depth")
+    np.testing.assert_array_equal(coarse.depth_m[::2, ::2], half)
+    np.testing.assert_array_equal(coarse.depth_m[1::2, 1::2], half)
+    assert np.median(np.abs(coarse.depth_m - whole)[whole > 0]) < 0.05  # close to the full-resolution depth
 
 
 def test_bad_render_requests_fail_their_own_future(make_worker: Factory) -> None:

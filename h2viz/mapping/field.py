@@ -45,16 +45,19 @@ class HybridField(nn.Module):
             last.bias.zero_()
         self.voxel_size_m = cfg.voxel_size_m
         self.use_residual = True
+        # Corners without a prior start as free space at the truncation distance: a zero would put a
+        # surface on every corner whose projection failed.
+        self.unset_prior = 1.0 if cfg.priors else 0.0
         self.priors = torch.zeros(0)  # (C,) corner SDF in tr units, grows with the octree
         self.corner_ids = torch.zeros(0, 8, dtype=torch.long)  # (V,8)
         self.voxel_origin = torch.zeros(0, 3)  # (V,3) metres, min corner of each voxel
 
     def sync(self, octree: VoxelOctree) -> None:
-        """Grow priors and voxel tables to match the octree (new corners start at 0)."""
+        """Grow priors and voxel tables to match the octree (new corners start at `unset_prior`)."""
         dev = self.priors.device
         n_new = octree.n_corners - self.priors.numel()
         if n_new > 0:
-            grown = torch.cat([self.priors.detach(), torch.zeros(n_new, device=dev)])
+            grown = torch.cat([self.priors.detach(), torch.full((n_new,), self.unset_prior, device=dev)])
             self.priors = grown.requires_grad_(self.priors.requires_grad)
         if octree.n_voxels != self.corner_ids.shape[0]:
             self.corner_ids = torch.from_numpy(octree.voxel_corners).to(dev)
@@ -125,10 +128,10 @@ def gather_leaf(name: str, table: torch.Tensor, rows: torch.Tensor) -> tuple[Lea
 
 
 def sparse_encode(name: str, grid: HashGrid, x: torch.Tensor) -> tuple[torch.Tensor, Leaf]:
-    """HashGrid features (N, L*F) computed from a gathered leaf of its table rows."""
-    rows, weights = corners_and_weights(x, grid.cell_sizes_m, grid.log2_size, grid.tables.dtype)  # (N,L,8) x2
+    """HashGrid features (N, L*F) computed from a gathered leaf of its table rows (equal to grid(x))."""
+    rows, weights = corners_and_weights(x, grid.cell_sizes_m, grid.log2_size, grid.tables.dtype)  # (8,L,N) x2
     flat = grid.tables.view(-1, grid.n_features)  # (L*T,F)
-    leaf, inverse = gather_leaf(name, flat, rows)
-    feats = leaf.values[inverse.reshape(-1)].view(-1, 8, grid.n_features)  # (N*L,8,F)
-    out = torch.bmm(weights.reshape(-1, 1, 8), feats)  # (N*L,1,F)
-    return out.view(x.shape[0], grid.output_dim), leaf
+    leaf, inverse = gather_leaf(name, flat, rows.long())
+    feats = leaf.values[inverse.reshape(-1)].view(8, -1, grid.n_features)  # (8,L*N,F)
+    out = (weights.reshape(8, -1, 1) * feats).sum(0)  # (L*N,F)
+    return out.view(grid.n_levels, x.shape[0], grid.n_features).permute(1, 0, 2).reshape(x.shape[0], -1), leaf

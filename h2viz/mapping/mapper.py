@@ -81,7 +81,7 @@ class Mapper:
         self._init_priors(frame)  # project new corners into the depth image
         if self.keyframes.should_insert(frame.index, alloc.observed):  # IoU / max-gap rule
             self._add_keyframe(frame, rays, alloc.observed)
-        selected = self.keyframes.select(alloc.observed)  # coverage-maximising K keyframes
+        selected = self.keyframes.select(alloc.observed, frame.index)  # coverage-maximising K keyframes
         iters, losses = self._optimise([rays, *(self.keyframe_rays[i] for i in selected)])  # early ending
         self.touched[alloc.new_voxels] = True  # new voxels' chunks must be meshed
         self.trajectory.append(frame.T_world_camera)
@@ -140,7 +140,9 @@ class Mapper:
         if c.free_samples < 0:  # the paper: every 1 cm of every allocated voxel the ray crosses
             samples = sample_rays(self.octree, batch.origins, batch.dirs, batch.depth + tr, c.step_m, True)
         else:  # the truncation band plus stratified free-space samples
-            samples = band_samples(self.octree, batch.origins, batch.dirs, batch.depth, c.band_m, tr, c.step_m, c.free_samples)
+            samples = band_samples(
+                self.octree, batch.origins, batch.dirs, batch.depth, c.band_m, tr, c.step_m, c.free_samples, self.rng
+            )
         if samples.t.numel() == 0:
             return {"total": torch.zeros(())}
         sdf, rgb, leaves = self.field.train_forward(samples.points, samples.voxel)
@@ -187,11 +189,14 @@ class Mapper:
         self.mesher.resolution = int(value)
 
     def update_mesh(self) -> None:
-        """Re-mesh the chunks whose voxels changed since the last update."""
+        """Re-mesh the chunks whose voxels changed since the last update. Only voxels whose priors are
+        initialised are meshed: a voxel at the edge of the view would otherwise close the surface with a
+        skirt where its unobserved corners meet observed ones."""
         coords = self.octree.voxel_coords()
         dirty = self.mesher.chunks_of(coords[self.touched], halo=True)
         self.version += 1
-        self.mesher.update(coords, dirty, self.sdf_m, self.color_u8, self.version)
+        meshable = self.priors.initialised(self.octree.n_voxels)
+        self.mesher.update(coords[meshable], dirty, self.sdf_m, self.color_u8, self.version)
         self.touched[:] = False
 
     def mesh_chunks(self) -> dict[tuple[int, int, int], MeshChunk]:

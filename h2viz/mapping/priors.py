@@ -56,6 +56,12 @@ class PriorInitializer:
         self.pending = self.pending[~ok_voxel]
         return cids[fresh], vals[fresh].astype(np.float32)
 
+    def initialised(self, n_voxels: int) -> np.ndarray:
+        """(V,) True for voxels whose corners all hold priors (every voxel when priors are disabled)."""
+        mask = np.ones(n_voxels, dtype=bool)
+        mask[self.pending] = False
+        return mask
+
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"written": self.written, "pending": self.pending}
 

@@ -30,15 +30,16 @@ class RenderParams:
 
 
 def locate(octree: VoxelOctree, points: torch.Tensor) -> torch.Tensor:
-    """Voxel ids (N,) of points (N,3), also accepting points on the outer face of an allocated voxel."""
+    """Voxel ids (N,) of points (N,3), also accepting points on the outer face of an allocated voxel
+    (up to rounding in either direction), -1 elsewhere."""
     ids = octree.lookup_points(points)
     eps = 1e-4 * octree.voxel_size_m
-    for bits in range(1, 8):
+    for code in range(27):
         missing = ids < 0
         if not bool(missing.any()):
             break
-        shift = torch.tensor([bits >> 2 & 1, bits >> 1 & 1, bits & 1], device=points.device) * eps
-        ids[missing] = octree.lookup_points(points[missing] - shift)
+        shift = (torch.tensor([code // 9, code // 3 % 3, code % 3], device=points.device) - 1) * eps
+        ids[missing] = octree.lookup_points(points[missing] + shift)
     return ids
 
 

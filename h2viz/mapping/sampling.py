@@ -113,6 +113,7 @@ def band_samples(
     truncation_m: float,
     step_m: float,
     n_free: int,
+    generator: torch.Generator | None = None,
 ) -> Samples:
     """Training samples where the losses act, without traversing the whole ray: every `step_m` from
     `band_m` in front of the measured depth to tr behind it, plus `n_free` stratified free-space candidates
@@ -120,10 +121,11 @@ def band_samples(
     R, dev = depth.shape[0], depth.device
     n_band = int(round((band_m + truncation_m) / step_m))
     k = torch.arange(n_band, device=dev, dtype=depth.dtype)
-    t_band = (depth - band_m)[:, None] + (k + torch.rand(R, n_band, device=dev)) * step_m  # (R,B)
+    jitter = torch.rand(R, n_band + n_free, generator=generator).to(dev)  # (R,F+B) reproducible on any device
+    t_band = (depth - band_m)[:, None] + (k + jitter[:, n_free:]) * step_m  # (R,B)
     free_end = (depth - band_m).clamp(min=0.0)
     j = torch.arange(n_free, device=dev, dtype=depth.dtype)
-    t_free = (j + torch.rand(R, n_free, device=dev)) / max(n_free, 1) * free_end[:, None]  # (R,F)
+    t_free = (j + jitter[:, :n_free]) / max(n_free, 1) * free_end[:, None]  # (R,F)
     t = torch.cat([t_free, t_band], dim=1)  # (R,F+B) increasing along each row
     points = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # (R,F+B,3)
     voxel = octree.lookup_points(points.reshape(-1, 3))  # (R*(F+B),)

@@ -33,8 +33,8 @@ def _cone(axis: np.ndarray, n: int, half_angle_rad: float) -> np.ndarray:
     phi = k * np.pi * (3.0 - np.sqrt(5.0))
     sin_t = np.sqrt(1.0 - cos_t**2)
     local = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], 1)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(axis, helper)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(axis, ref)
     x /= np.linalg.norm(x)
     return local @ np.stack([x, np.cross(axis, x), axis])
 
@@ -45,8 +45,8 @@ def _hemisphere(normals: np.ndarray, n: int) -> np.ndarray:
     r = np.sqrt(k / n)
     phi = k * np.pi * (3.0 - np.sqrt(5.0)) + np.random.default_rng(0).uniform(0, 2 * np.pi, (len(normals), 1))
     local = np.stack([r * np.cos(phi), r * np.sin(phi), np.broadcast_to(np.sqrt(1 - r**2), phi.shape)], -1)
-    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    x = np.cross(normals, helper)
+    ref = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    x = np.cross(normals, ref)
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     y = np.cross(normals, x)
     return local[..., :1] * x[:, None] + local[..., 1:2] * y[:, None] + local[..., 2:] * normals[:, None]

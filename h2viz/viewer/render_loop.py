@@ -172,6 +172,7 @@ class RenderLoop:
             width=width,
             mode=self.mode,
             with_depth=True,
+            depth_downscale=2,,
         )
 
 

@@ -45,8 +45,32 @@ def settle(future: Future[Any], value: Any = None, error: BaseException | None =
         pass
 
 
+def _bands(
+    mapper: Mapper, K: np.ndarray, T: np.ndarray, height: int, width: int, mode: str, out: list
+) -> Any:
+    """Render one image in row bands of about RENDER_BAND_PIXELS, appending each band to `out`;
+    yields the seconds each band took."""
+    rows = max(1, RENDER_BAND_PIXELS // width)
+    for r0 in range(0, height, rows):
+        t0 = time.perf_counter()
+        K_band = K.copy()
+        K_band[1, 2] -= r0  # the band is the image rows [r0, r0 + h)
+        band = mapper.render(K_band, T, min(rows, height - r0), width, mode)
+        out.append(np.asarray(band, dtype=np.float32))
+        yield time.perf_counter() - t0
+
+
+def scaled_intrinsics(K: np.ndarray, factor: int) -> np.ndarray:
+    """K (3,3) of the same camera with images `factor` times smaller (pixel centres kept aligned)."""
+    K = K.copy()
+    K[:2, :2] /= factor
+    K[:2, 2] = (K[:2, 2] + 0.5) / factor - 0.5
+    return K
+
+
 def render_bands(mapper: Mapper, args: dict[str, Any]) -> Generator[None, None, RenderedView]:
-    """Render args K, T_world_camera, height, width, mode (and with_depth) one row band per step."""
+    """Render args K, T_world_camera, height, width, mode one row band per step. With `with_depth`,
+    also the z-depth, at 1/`depth_downscale` resolution (default 1) upsampled by repetition."""
     K = np.asarray(args["K"], dtype=np.float64).reshape(3, 3)
     T_world_camera = check_pose(args["T_world_camera"], "render request")
     height, width = int(args["height"]), int(args["width"])
@@ -56,25 +80,26 @@ def render_bands(mapper: Mapper, args: dict[str, Any]) -> Generator[None, None, 
         raise H2vizError(f"render: unknown mode '{mode}'; use one of {', '.join(modes)}")
     if not (0 < height <= 8192 and 0 < width <= 8192):
         raise H2vizError(f"render: image size {width}x{height} must be between 1 and 8192 pixels a side")
-    with_depth = bool(args.get("with_depth", False))
-    rows = max(1, RENDER_BAND_PIXELS // width)
     images: list[np.ndarray] = []
-    depths: list[np.ndarray] = []
     spent = 0.0
-    for r0 in range(0, height, rows):
-        t0 = time.perf_counter()
-        h = min(rows, height - r0)
-        K_band = K.copy()
-        K_band[1, 2] -= r0  # the band is the image rows [r0, r0 + h)
-        images.append(np.asarray(mapper.render(K_band, T_world_camera, h, width, mode), dtype=np.float32))
-        if with_depth:
-            own = mode in DEPTH_MODES
-            depth = images[-1] if own else mapper.render(K_band, T_world_camera, h, width, "depth")
-            depths.append(np.asarray(depth, dtype=np.float32))
-        spent += time.perf_counter() - t0
+    for seconds in _bands(mapper, K, T_world_camera, height, width, mode, images):
+        spent += seconds
         yield
-    depth_m = np.concatenate(depths, axis=0) if with_depth else None
-    return RenderedView(np.concatenate(images, axis=0), depth_m, mode, spent)
+    image = np.concatenate(images, axis=0)
+    depth_m = None
+    if args.get("with_depth", False):
+        depth_m = image if mode in DEPTH_MODES else None
+        s = max(1, int(args.get("depth_downscale", 1)))
+        if depth_m is None:
+            h, w = -(-height // s), -(-width // s)
+            depths: list[np.ndarray] = []
+            for seconds in _bands(mapper, scaled_intrinsics(K, s), T_world_camera, h, w, "depth", depths):
+                spent += seconds
+                yield
+            depth_m = np.repeat(np.repeat(np.concatenate(depths, axis=0), s, axis=0), s, axis=1)[
+                :height, :width
+            ]
+    return RenderedView(image, depth_m, mode, spent)
 
 
 def export_mesh_bytes(mapper: Mapper, fmt: str) -> bytes:

@@ -52,9 +52,8 @@ def _test_points(n: int, seed: int) -> Tensor:
     far = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * 2000.0
     on_faces = room.clone()
     on_faces[:, 0] = torch.round(on_faces[:, 0] / FINEST_CELL_M) * FINEST_CELL_M  # x on a finest-level face
-    on_faces[: n // 2, 1] = (
-        torch.round(on_faces[: n // 2, 1] / BASE_CELL_M) * BASE_CELL_M
-    )  # faces of all levels
+    half = on_faces[: n // 2]
+    half[:, 1] = torch.round(half[:, 1] / BASE_CELL_M) * BASE_CELL_M  # y on a face of every level
     return torch.cat([room, far, on_faces])
 
 
@@ -75,29 +74,34 @@ def test_forward_matches_reference() -> None:
     assert ref.abs().max() > 0.5  # the comparison is between O(1) values
 
 
-def test_compile_friendly_blend_matches() -> None:
+def test_compile_friendly_form_matches_reference() -> None:
     grid = _grid(seed=15)
     x = _test_points(500, seed=16)
-    torch.testing.assert_close(
-        encode_for_compile(x, grid.tables, grid.cell_sizes_m), grid(x), rtol=0.0, atol=1e-12
-    )
+    upstream = torch.randn(x.shape[0], 8, dtype=torch.float64)
+    out = encode_for_compile(x, grid.tables, grid.cell_sizes_m)
+    ref = hash_grid_reference(x, grid.tables, BASE_CELL_M, SCALE)
+    torch.testing.assert_close(out, ref, rtol=0.0, atol=1e-12)
+    (got,) = torch.autograd.grad((out * upstream).sum(), grid.tables)
+    (expected,) = torch.autograd.grad((ref * upstream).sum(), grid.tables)
+    torch.testing.assert_close(got, expected, rtol=0.0, atol=1e-10)
 
 
 @pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_compiled_grid_matches_eager() -> None:
-    """torch.compile (needs a C++ compiler on CPU) gives the same values and table gradients."""
+    """torch.compile (needs a C++ compiler on CPU) serves gradient-free calls with the same values."""
     torch.manual_seed(17)
     eager = HashGrid(log2_size=14, init_std=1.0)
     compiled = HashGrid(log2_size=14, init_std=1.0, compile=True)
     compiled.load_state_dict(eager.state_dict())
-    upstream = torch.randn(3000, 8)
     for n in (3000, 2000):  # a second size must not break the dynamic-shape graph
         x = _test_points(n // 3, seed=n).float()
+        with torch.no_grad():
+            torch.testing.assert_close(compiled(x), eager(x), rtol=1e-5, atol=1e-5)
+        upstream = torch.randn(x.shape[0], 8)
         for grid in (eager, compiled):
             grid.zero_grad(set_to_none=True)
-            (grid(x) * upstream[: x.shape[0]]).sum().backward()
-        torch.testing.assert_close(compiled(x), eager(x), rtol=1e-5, atol=1e-5)
+            (grid(x) * upstream).sum().backward()
         torch.testing.assert_close(compiled.tables.grad, eager.tables.grad, rtol=1e-5, atol=1e-5)
 
 
@@ -113,6 +117,17 @@ def test_gradients_match_reference() -> None:
     torch.testing.assert_close(grad_tables, ref_tables, rtol=0.0, atol=1e-10)
     torch.testing.assert_close(grad_x, ref_x, rtol=1e-9, atol=1e-7)
     assert int((grad_tables != 0).sum()) > 1000  # many entries receive gradient
+
+
+def test_gradient_wrt_points_with_frozen_tables() -> None:
+    grid = _grid(seed=20).requires_grad_(False)
+    x = _test_points(300, seed=21).requires_grad_()
+    (got,) = torch.autograd.grad(grid(x).square().sum(), x)
+    (expected,) = torch.autograd.grad(
+        hash_grid_reference(x, grid.tables, BASE_CELL_M, SCALE).square().sum(), x
+    )
+    torch.testing.assert_close(got, expected, rtol=1e-9, atol=1e-7)
+    assert got.abs().max() > 1.0
 
 
 def test_float32_accurate_far_from_origin() -> None:
@@ -222,7 +237,7 @@ def test_fits_a_smooth_field_and_a_broken_blend_does_not(monkeypatch: pytest.Mon
 
     def mirrored_weights(*args: object) -> tuple[Tensor, Tensor]:
         rows, weights = honest(*args)  # type: ignore[arg-type]
-        return rows, weights.flip(-1)  # each corner gets the weight of the opposite corner
+        return rows, weights.flip(0)  # each corner gets the weight of the opposite corner
 
     monkeypatch.setattr(encoding, "corners_and_weights", mirrored_weights)
     broken = _fit_error()

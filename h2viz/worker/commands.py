@@ -1,0 +1,136 @@
+"""Serving viewer Commands on the mapping thread: pause / resume / step, live settings, exports and
+checkpoints at once; renders as row-band jobs advanced round robin within a time budget, so they
+interleave with mapping instead of stalling it."""
+
+from __future__ import annotations
+
+import logging
+import queue
+import time
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future
+from typing import TYPE_CHECKING, Any
+
+from h2viz.errors import H2vizError
+from h2viz.types import Command
+from h2viz.worker import requests
+from h2viz.worker.feed import FrameFeed, WorkerSettings
+
+if TYPE_CHECKING:
+    from h2viz.mapping.mapper import Mapper
+
+log = logging.getLogger("h2viz.worker")
+COMMANDS = ("pause", "resume", "step", "set", "render", "export", "save")
+
+
+class CommandServing:
+    """The command half of MappingWorker (which provides the state declared here)."""
+
+    mapper: Mapper
+    settings: WorkerSettings
+    _feed: FrameFeed
+    _commands: queue.Queue[Command]
+    _renders: deque[tuple[Command, Any]]  # (command, row-band generator)
+    _steps: deque[Future[Any]]
+    _paused: bool
+    _finished: bool
+    _mesh_dirty: bool
+    _last_map_s: float
+
+    def _publish(self) -> None:
+        raise NotImplementedError
+
+    def _remesh(self) -> None:
+        raise NotImplementedError
+
+    def _idle(self) -> bool:
+        raise NotImplementedError
+
+    def _serve_commands(self, timeout_s: float) -> None:
+        try:
+            cmd = self._commands.get(timeout=timeout_s) if timeout_s > 0 else self._commands.get_nowait()
+        except queue.Empty:
+            return
+        while True:
+            try:
+                self._handle(cmd)
+            except Exception as e:  # a bad request fails its own Future, never the worker
+                log.warning("command %s failed: %s", cmd.kind, e)
+                requests.settle(cmd.reply, error=e)
+            try:
+                cmd = self._commands.get_nowait()
+            except queue.Empty:
+                return
+
+    def _handle(self, cmd: Command) -> None:
+        handlers: dict[str, Callable[[dict[str, Any]], Any]] = {
+            "pause": lambda a: self._set_paused(True),
+            "resume": lambda a: self._set_paused(False),
+            "set": self._apply_settings,
+            "export": self._export,
+            "save": lambda a: requests.save_checkpoint(self.mapper, a["path"]),
+        }
+        if cmd.kind == "render":
+            self._renders.append((cmd, requests.render_bands(self.mapper, cmd.args)))
+        elif cmd.kind == "step":
+            self._step(cmd.reply)
+        elif cmd.kind in handlers:
+            requests.settle(cmd.reply, handlers[cmd.kind](cmd.args))
+        else:
+            raise H2vizError(f"unknown command '{cmd.kind}'; use one of {', '.join(COMMANDS)}")
+
+    def _export(self, args: dict[str, Any]) -> bytes:
+        self._remesh()
+        return requests.export_mesh_bytes(self.mapper, str(args.get("format", "ply")))
+
+    def _set_paused(self, paused: bool) -> bool:
+        self._paused = paused
+        self._feed.hold(paused and not self._steps)
+        self._publish()
+        return paused
+
+    def _step(self, reply: Future[Any]) -> None:
+        if self._finished:
+            requests.settle(reply, None)
+            return
+        self._steps.append(reply)
+        self._feed.hold(False)
+
+    def _apply_settings(self, args: dict[str, Any]) -> dict[str, Any]:
+        if requests.apply_settings(self.settings, self.mapper, args):
+            self._mesh_dirty = True
+        return requests.settings_reply(self.settings, self.mapper)
+
+    def _render_slices(self) -> None:
+        """Advance pending renders band by band (round robin) within a time budget that keeps
+        mapping going: about as long as the last frame took to map."""
+        budget = 0.25 if self._idle() else max(0.1, self._last_map_s)
+        deadline = time.perf_counter() + budget
+        while self._renders and time.perf_counter() < deadline:
+            cmd, job = self._renders[0]
+            if cmd.reply.cancelled():
+                self._renders.popleft()
+                continue
+            try:
+                next(job)
+                self._renders.rotate(-1)
+            except StopIteration as done:
+                self._renders.popleft()
+                requests.settle(cmd.reply, done.value)
+            except Exception as e:
+                self._renders.popleft()
+                log.warning("render failed: %s", e)
+                requests.settle(cmd.reply, error=e)
+
+    def _fail_pending(self, error: BaseException) -> None:
+        for cmd, _ in self._renders:
+            requests.settle(cmd.reply, error=error)
+        self._renders.clear()
+        while self._steps:
+            requests.settle(self._steps.popleft(), error=error)
+        while True:
+            try:
+                requests.settle(self._commands.get_nowait().reply, error=error)
+            except queue.Empty:
+                return
