@@ -49,6 +49,8 @@ class Run:
     latencies_s: list[float] = field(default_factory=list)
     extract_s: list[float] = field(default_factory=list)  # frame mapped -> its mesh extracted
     remesh_s: list[float] = field(default_factory=list)  # duration of each mesh extraction
+    send_delay_s: list[float] = field(default_factory=list)  # mesh extracted -> dashboard sends it
+    transfer_s: list[float] = field(default_factory=list)  # dashboard sends -> browser has all of it
     update_bytes: list[int] = field(default_factory=list)
     update_chunks: list[int] = field(default_factory=list)
     whole_mesh_bytes: int = 0
@@ -167,6 +169,13 @@ def _latencies(run: Run, worker: MappingWorker, mapper: Any, sends: list, arriva
             run.update_bytes.append(sum(b for _, b in got))
             run.update_chunks.append(len(names))
     run.remesh_s = [t1 - t0 for _, t0, t1, _ in mapper.meshed]
+    extracted = {v: t1 for v, _, t1, _ in mapper.meshed}
+    run.send_delay_s = [t - extracted[v] for t, v, _ in sends if v in extracted]
+    run.transfer_s = [
+        max(t for t, _ in got) - t_sent
+        for t_sent, _, names in sends
+        if (got := _first_arrivals(names, t_sent, arrivals))
+    ]
     for i, t_mapped in enumerate(frame_times):
         meshes = [(v, t1) for v, _, t1, n in mapper.meshed if n >= i + 1]  # extractions including frame i
         if not meshes:
@@ -178,14 +187,18 @@ def _latencies(run: Run, worker: MappingWorker, mapper: Any, sends: list, arriva
 
 
 def render_times(worker: MappingWorker, dashboard: Dashboard) -> list[tuple[str, float, float]]:
-    """(resolution, rgb render s, background render s = rgb + depth) at the last frame's pose."""
+    """(resolution, rgb render s, background render s = rgb + half-resolution depth) at the last pose."""
     frame = worker.slot.get()[1].current_frame
     out = []
     for width, height in RESOLUTIONS:
         K = view_intrinsics(2 * np.arctan2(0.5 * frame.height, frame.K[1, 1]), width, height)
         args = {"K": K, "T_world_camera": frame.T_world_camera, "height": height, "width": width}
         rgb = worker.submit("render", mode="rgb", **args).result(600).seconds
-        both = worker.submit("render", mode="rgb", with_depth=True, **args).result(600).seconds
+        both = (
+            worker.submit("render", mode="rgb", with_depth=True, depth_downscale=2, **args)
+            .result(600)
+            .seconds
+        )
         out.append((f"{width}x{height}", rgb, both))
     return out
 
@@ -210,6 +223,8 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
             (latency, _median_max(r.latencies_s, 1000)),
             ("  of which: frame mapped -> its mesh extracted, ms", _median_max(r.extract_s, 1000)),
             ("mesh extraction (update_mesh) duration, ms", _median_max(r.remesh_s, 1000)),
+            ("mesh extracted -> dashboard sends it, ms", _median_max(r.send_delay_s, 1000)),
+            ("dashboard sends -> browser received the whole update, ms", _median_max(r.transfer_s, 1000)),
             ("mesh updates received", str(len(r.update_bytes))),
             ("kB per mesh update", _median_max([float(b) for b in r.update_bytes], 1e-3)),
             ("chunks per mesh update", _median_max([float(c) for c in r.update_chunks])),
@@ -218,7 +233,7 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
         print("\n| mesh streaming (1 browser) | median / max |\n|---|---:|")
         for name, value in rows:
             print(f"| {name} | {value} |")
-    print("\n| novel view | rgb render ms | background (rgb + depth) ms |\n|---|---:|---:|")
+    print("\n| novel view | rgb render ms | background (rgb + half-res depth) ms |\n|---|---:|---:|")
     for res, rgb, both in renders:
         print(f"| {res} | {1000 * rgb:.0f} | {1000 * both:.0f} |")
 

@@ -172,7 +172,7 @@ class RenderLoop:
             width=width,
             mode=self.mode,
             with_depth=True,
-            depth_downscale=2,,
+            depth_downscale=2,  # the depth only places the image among the scene nodes
         )
 
 

@@ -1,0 +1,89 @@
+"""`h2viz` end to end: map the synthetic scene with real outputs, resume, eval, and clear errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from h2viz.cli import main
+
+TINY = [
+    "--set", "source.synthetic.width=96", "--set", "source.synthetic.height=72",
+    "--set", "source.synthetic.n_frames=80", "--set", "mapping.min_points_per_voxel=1",
+    "--set", "mapping.hash_log2_size=15", "--set", "mapping.rays_per_iter=1024", "--set", "mapping.max_iters=5",
+    "--set", "mapping.device=cpu", "--set", "eval.n_points=20000", "--set", "eval.n_interpolate=3",
+    "--set", "eval.n_extrapolate=2", "--set", "eval.render_downscale=1",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("run")
+    assert main(["map", "--frames", "6", "--stride", "10", "--out", str(out), "-q", *TINY]) == 0
+    return out
+
+
+def test_map_writes_mesh_checkpoint_config_stats_and_metrics(run_dir: Path) -> None:
+    mesh = trimesh.load(run_dir / "mesh.ply", process=False)
+    assert len(mesh.faces) > 1000 and mesh.visual.vertex_colors.shape[0] == len(mesh.vertices)
+    assert (run_dir / "checkpoint.pt").is_file()
+    cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+    assert cfg["mapping"]["max_iters"] == 5 and cfg["source"]["format"] == "synthetic"
+    stats = json.loads((run_dir / "stats.json").read_text())
+    frames = stats["frames"]
+    assert [f["index"] for f in frames] == [0, 10, 20, 30, 40, 50]
+    for f in frames:
+        assert f["map_time_s"] > 0 and 1 <= f["iterations"] <= 5 and f["n_voxels"] > 0 and f["n_keyframes"] >= 1
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    # six low-resolution frames with five iterations each: a coarse map, but a real one
+    assert metrics["mesh"]["acc_cm"] < 5.0 and metrics["mesh"]["comp_ratio"] > 60, metrics["mesh"]
+    assert metrics["interpolate"]["depth_l1_cm"] < 5.0 and np.isfinite(metrics["interpolate"]["psnr_db"])
+    assert "extrapolate" in metrics
+
+
+def test_resume_continues_after_the_last_frame(run_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "resumed"
+    args = ["map", "--frames", "8", "--stride", "10", "--out", str(out), "-q", *TINY]
+    assert main([*args, "--resume", str(run_dir / "checkpoint.pt")]) == 0
+    stats = json.loads((out / "stats.json").read_text())
+    assert [f["index"] for f in stats["frames"]] == [60, 70]  # frames 0-50 came from the checkpoint
+    assert stats["frames"][0]["n_keyframes"] > 1
+
+
+def test_eval_prints_a_table_and_writes_metrics(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    plane = trimesh.creation.box(extents=[0.5, 0.5, 0.001]).subdivide().subdivide().subdivide()
+    shifted = plane.copy()
+    shifted.apply_translation([0, 0, 0.01])
+    plane.export(tmp_path / "gt.ply")
+    shifted.export(tmp_path / "rec.ply")
+    assert main(["eval", "--mesh", str(tmp_path / "rec.ply"), "--gt", str(tmp_path / "gt.ply"), "--points", "20000"]) == 0
+    out = capsys.readouterr().out
+    assert "acc_cm" in out and "comp_ratio" in out
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["acc_cm"] == pytest.approx(1.0, abs=0.15) and m["comp_ratio"] > 99
+
+
+def test_unrecognised_folder_lists_what_was_looked_for(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "notes.txt").write_text("nothing here")
+    assert main(["map", "--data", str(tmp_path), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "could not recognise" in err and "rgb.txt" in err and "traj.txt" in err
+
+
+def test_unknown_config_key_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("mapping:\n  max_iter: 3\n")
+    assert main(["map", "--config", str(bad), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "max_iter" in err and "max_iters" in err and str(bad) in err
+
+
+def test_config_docs_lists_every_field(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["config", "--docs"]) == 0
+    out = capsys.readouterr().out
+    assert "mapping.voxel_size_m = 0.1" in out and "Edge of an octree leaf voxel." in out
