@@ -50,6 +50,7 @@ def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = N
         "priors": mapper.field.priors.detach().cpu(),
         "field": {k: v.cpu() for k, v in mapper.field.state_dict().items()},
         "optim": mapper.optim.state_dict(),
+        "net_optim": mapper.net_optim.state_dict(),
         "keyframes": mapper.keyframes.state_dict(),
         "keyframe_frames": [_keyframe_record(r) for r in mapper.keyframe_rays],
         "thumbnails": mapper.thumbnails,
@@ -95,6 +96,7 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
     mapper.field.load_state_dict(state["field"])
     mapper.field.priors = state["priors"].to(mapper.device).requires_grad_(saved.priors)
     mapper.optim.load_state_dict(state["optim"])
+    mapper.net_optim.load_state_dict(state["net_optim"])
     mapper.keyframes.load_state_dict(state["keyframes"])
     mapper.keyframe_rays = [_keyframe_from_record(r, mapper.device) for r in state["keyframe_frames"]]
     mapper.thumbnails = list(state["thumbnails"])

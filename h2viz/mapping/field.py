@@ -6,13 +6,11 @@ octree; the two hash grids and decoders are ordinary modules.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import nn
 
 from h2viz.config import MappingConfig
-from h2viz.mapping.encoding import HashGrid, corners_and_weights
+from h2viz.mapping.encoding import HashGrid
 from h2viz.mapping.octree import VoxelOctree
 
 
@@ -89,49 +87,3 @@ class HybridField(nn.Module):
 
     def forward(self, points: torch.Tensor, voxel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.sdf(points, voxel), self.color(points)
-
-    def train_forward(
-        self, points: torch.Tensor, voxel: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, list[Leaf]]:
-        """sdf (N,), colour (N,3) and the gathered rows of priors and hash tables as gradient leaves:
-        the backward pass then only touches the entries these points use."""
-        leaves: list[Leaf] = []
-        if self.priors.requires_grad:
-            leaf, inverse = gather_leaf("priors", self.priors[:, None], self.corner_ids[voxel])
-            leaves.append(leaf)
-            s = self._trilinear(points, voxel, leaf.values[:, 0][inverse])
-        else:
-            s = self.prior_sdf(points, voxel)
-        geo, leaf = sparse_encode("geo_tables", self.geo_grid, points)
-        leaves.append(leaf)
-        if self.use_residual:
-            s = s + self.geo_mlp(geo)[:, 0]
-        color, leaf = sparse_encode("color_tables", self.color_grid, points)
-        leaves.append(leaf)
-        return s, torch.sigmoid(self.color_mlp(color)), leaves
-
-
-@dataclass
-class Leaf:
-    """Rows of a large tensor gathered as a gradient leaf for one training step."""
-
-    name: str  # optimiser slot of the tensor
-    rows: torch.Tensor  # (U,) row indices
-    values: torch.Tensor  # (U,width) leaf with requires_grad
-
-
-def gather_leaf(name: str, table: torch.Tensor, rows: torch.Tensor) -> tuple[Leaf, torch.Tensor]:
-    """Leaf of the unique rows of table (T,width) used by `rows` (any shape), and the inverse index."""
-    unique, inverse = torch.unique(rows, return_inverse=True)
-    values = table.detach()[unique].requires_grad_(True)  # (U,width)
-    return Leaf(name, unique, values), inverse
-
-
-def sparse_encode(name: str, grid: HashGrid, x: torch.Tensor) -> tuple[torch.Tensor, Leaf]:
-    """HashGrid features (N, L*F) computed from a gathered leaf of its table rows (equal to grid(x))."""
-    rows, weights = corners_and_weights(x, grid.cell_sizes_m, grid.log2_size, grid.tables.dtype)  # (8,L,N) x2
-    flat = grid.tables.view(-1, grid.n_features)  # (L*T,F)
-    leaf, inverse = gather_leaf(name, flat, rows.long())
-    feats = leaf.values[inverse.reshape(-1)].view(8, -1, grid.n_features)  # (8,L*N,F)
-    out = (weights.reshape(8, -1, 1) * feats).sum(0)  # (L*N,F)
-    return out.view(grid.n_levels, x.shape[0], grid.n_features).permute(1, 0, 2).reshape(x.shape[0], -1), leaf

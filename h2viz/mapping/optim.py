@@ -71,27 +71,14 @@ class GrowingAdam:
                 denom = (slot.v / (1 - b2**t)).sqrt_().add_(self.eps)
                 p.addcdiv_(slot.m, denom, value=-self.lr / (1 - b1**t))
 
-    @torch.no_grad()
-    def step_rows(self, name: str, rows: torch.Tensor, grad: torch.Tensor) -> None:
-        """Adam on rows (U,) of a row-sparse tensor, with their gradient (U, width) given explicitly
-        (the gradient of a gathered leaf), so no dense pass over the whole tensor is made."""
-        slot = self.slots[name]
-        p = slot.get()
-        self._fit(slot, p)
-        width = p.shape[-1] if p.dim() > 1 else 1
-        P, M, V = (x.view(-1, width) for x in (p, slot.m, slot.v))
-        keep = grad.reshape(rows.numel(), width).abs().sum(1) > 0
-        self._update(P, M, V, grad.reshape(-1, width)[keep], rows[keep], slot.steps, *self.betas, dense_grad=False)
-
     def _update(
         self, p: torch.Tensor, m: torch.Tensor, v: torch.Tensor, g: torch.Tensor,
-        rows: torch.Tensor, steps: torch.Tensor, b1: float, b2: float, dense_grad: bool = True,
+        rows: torch.Tensor, steps: torch.Tensor, b1: float, b2: float,
     ) -> None:
-        """Adam on the given rows of (rows, width) views only, with per-row bias correction; `g` is the
-        full-size gradient (dense_grad) or already the rows' gradient."""
+        """Adam on the given rows of (rows, width) views only, with per-row bias correction."""
         steps[rows] += 1
         t = steps[rows][:, None]
-        gr = g[rows] if dense_grad else g
+        gr = g[rows]
         mr = m[rows].mul_(b1).add_(gr, alpha=1 - b1)
         vr = v[rows].mul_(b2).addcmul_(gr, gr, value=1 - b2)
         m[rows], v[rows] = mr, vr
