@@ -7,20 +7,36 @@ import logging
 import sys
 from pathlib import Path
 
-from h2viz.config import Config, apply_file, apply_overrides, field_docs, load_config, source_config_file, to_dict
+from h2viz.config import (
+    Config,
+    apply_file,
+    apply_overrides,
+    field_docs,
+    load_config,
+    source_config_file,
+    to_dict,
+)
 from h2viz.errors import H2vizError
 
 FORMAT_CHOICES = ["auto", "synthetic", "replica", "scannet", "tum", "7scenes", "rosbag"]
 
 
 def _source_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", default="", help="dataset folder or bag file (default: the built-in synthetic scene)")
-    p.add_argument("--format", default=None, choices=FORMAT_CHOICES, help="data layout (default: auto-detect)")
+    p.add_argument(
+        "--data", default="", help="dataset folder or bag file (default: the built-in synthetic scene)"
+    )
+    p.add_argument(
+        "--format", default=None, choices=FORMAT_CHOICES, help="data layout (default: auto-detect)"
+    )
     p.add_argument("--config", action="append", default=[], help="YAML config file (repeatable, later wins)")
     p.add_argument("--frames", type=int, default=None, help="stop after N frames")
     p.add_argument("--stride", type=int, default=None, help="use every K-th frame")
     p.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="override any config field, e.g. mapping.max_iters=5"
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override any config field, e.g. mapping.max_iters=5",
     )
 
 
@@ -112,14 +128,18 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def make_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="h2viz", description="Live H2-Mapping of RGB-D frames, in the browser.")
+    parser = argparse.ArgumentParser(
+        prog="h2viz", description="Live H2-Mapping of RGB-D frames, in the browser."
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("map", help="map a sequence headless and write mesh, checkpoint, stats and metrics")
     _source_args(p)
     p.add_argument("--out", default="", help="output folder (default: outputs/<format>-<time>)")
-    p.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint.pt of an earlier run")
+    p.add_argument(
+        "--resume", type=Path, default=None, help="continue from a checkpoint.pt of an earlier run"
+    )
     p.add_argument("--gt-mesh", type=Path, default=None, help="ground-truth mesh for metrics.json")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_map)
@@ -155,7 +175,9 @@ def make_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = make_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
+    )
     try:
         return int(args.func(args))
     except H2vizError as e:

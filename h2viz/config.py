@@ -316,7 +316,9 @@ def _coerce(value: Any, typ: Any, where: str) -> Any:
 def _merge(obj: Any, data: dict[str, Any], origin: str, prefix: str = "") -> None:
     """Write `data` into dataclass `obj` in place, strictly; `origin` names the file or override."""
     if not isinstance(data, dict):
-        raise ConfigError(f"{origin}: '{prefix or '<top>'}' must be a mapping of keys to values, got {data!r}")
+        raise ConfigError(
+            f"{origin}: '{prefix or '<top>'}' must be a mapping of keys to values, got {data!r}"
+        )
     hints = typing.get_type_hints(type(obj))
     names = [f.name for f in dataclasses.fields(obj)]
     for key, value in data.items():

@@ -44,7 +44,9 @@ def camera_rays(K: np.ndarray, height: int, width: int) -> np.ndarray:
     return np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
 
 
-def world_rays(K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+def world_rays(
+    K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Origins (H*W,3) and z-normalised world directions (H*W,3) of every pixel."""
     d_cam = camera_rays(K, height, width).reshape(-1, 3)
     d_world = d_cam @ T_world_camera[:3, :3].T
@@ -52,7 +54,9 @@ def world_rays(K: np.ndarray, T_world_camera: np.ndarray, height: int, width: in
     return origins, d_world
 
 
-def project(points_world: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def project(
+    points_world: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates (N,2) and camera depth z (N,) of world points."""
     p = transform_points(invert_se3(T_world_camera), points_world)
     z = p[:, 2]
@@ -74,8 +78,9 @@ def ray_aabb(
     return np.maximum(t_near, 0.0), t_far
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """T_world_camera (4,4) of an OpenCV camera at `eye` looking at `target` (+y down, world up = `up`)."""
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
+    """T_world_camera (4,4) of an OpenCV camera at `eye` looking at `target` (+y down, world up = `up`, default +z)."""
+    up = np.array([0.0, 0.0, 1.0]) if up is None else up
     z = target - eye
     z = z / np.linalg.norm(z)
     x = np.cross(z, up)

@@ -16,9 +16,9 @@ import trimesh
 from tqdm import tqdm
 
 from h2viz.config import Config, dump_config
-from h2viz.eval.report import _stride_K, evaluate_images, format_table, load_mesh, write_metrics
 from h2viz.eval.mesh_render import MeshRenderer
 from h2viz.eval.metrics import mesh_metrics, observed_mask_fn
+from h2viz.eval.report import _stride_K, evaluate_images, format_table, load_mesh, write_metrics
 from h2viz.mapping.checkpoint import load_checkpoint, save_checkpoint
 from h2viz.mapping.mapper import Mapper
 from h2viz.sources.base import FrameSource, make_source
@@ -77,7 +77,9 @@ def _ground_truth(source: FrameSource, gt_mesh: Path | None) -> trimesh.Trimesh 
     return load_mesh(gt_mesh) if gt_mesh is not None else source.ground_truth_mesh()
 
 
-def evaluate(mapper: Mapper, mesh: trimesh.Trimesh, gt: trimesh.Trimesh | None, frames: EvalFrames, cfg: Config) -> dict:
+def evaluate(
+    mapper: Mapper, mesh: trimesh.Trimesh, gt: trimesh.Trimesh | None, frames: EvalFrames, cfg: Config
+) -> dict:
     """Mesh metrics against ground truth (culled to what was observed) and image metrics."""
     metrics: dict[str, Any] = {}
     if gt is not None and len(mesh.faces):
@@ -89,7 +91,9 @@ def evaluate(mapper: Mapper, mesh: trimesh.Trimesh, gt: trimesh.Trimesh | None, 
     return metrics
 
 
-def run_map(cfg: Config, resume: Path | None = None, gt_mesh: Path | None = None, progress: bool = True) -> RunResult:
+def run_map(
+    cfg: Config, resume: Path | None = None, gt_mesh: Path | None = None, progress: bool = True
+) -> RunResult:
     """Map every frame of the configured source and write the run's outputs."""
     source = make_source(cfg.source)
     out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)

@@ -38,7 +38,9 @@ def test_map_writes_mesh_checkpoint_config_stats_and_metrics(run_dir: Path) -> N
     frames = stats["frames"]
     assert [f["index"] for f in frames] == [0, 10, 20, 30, 40, 50]
     for f in frames:
-        assert f["map_time_s"] > 0 and 1 <= f["iterations"] <= 5 and f["n_voxels"] > 0 and f["n_keyframes"] >= 1
+        assert (
+            f["map_time_s"] > 0 and 1 <= f["iterations"] <= 5 and f["n_voxels"] > 0 and f["n_keyframes"] >= 1
+        )
     metrics = json.loads((run_dir / "metrics.json").read_text())
     # six low-resolution frames with five iterations each: a coarse map, but a real one
     assert metrics["mesh"]["acc_cm"] < 5.0 and metrics["mesh"]["comp_ratio"] > 60, metrics["mesh"]
@@ -61,14 +63,29 @@ def test_eval_prints_a_table_and_writes_metrics(tmp_path: Path, capsys: pytest.C
     shifted.apply_translation([0, 0, 0.01])
     plane.export(tmp_path / "gt.ply")
     shifted.export(tmp_path / "rec.ply")
-    assert main(["eval", "--mesh", str(tmp_path / "rec.ply"), "--gt", str(tmp_path / "gt.ply"), "--points", "20000"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--mesh",
+                str(tmp_path / "rec.ply"),
+                "--gt",
+                str(tmp_path / "gt.ply"),
+                "--points",
+                "20000",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "acc_cm" in out and "comp_ratio" in out
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert m["acc_cm"] == pytest.approx(1.0, abs=0.15) and m["comp_ratio"] > 99
 
 
-def test_unrecognised_folder_lists_what_was_looked_for(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_unrecognised_folder_lists_what_was_looked_for(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     (tmp_path / "notes.txt").write_text("nothing here")
     assert main(["map", "--data", str(tmp_path), "-q"]) == 2
     err = capsys.readouterr().err

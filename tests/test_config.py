@@ -49,7 +49,9 @@ def test_unknown_section_and_wrong_types_are_errors(tmp_path: Path) -> None:
 def test_overrides_files_then_command_line(tmp_path: Path) -> None:
     f = tmp_path / "a.yaml"
     f.write_text("mapping:\n  max_iters: 4\n  rays_per_iter: 1024\nsource:\n  synthetic:\n    width: 320\n")
-    cfg = load_config([f], ["mapping.max_iters=7", "source.rosbag.T_body_camera=[1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1]"])
+    cfg = load_config(
+        [f], ["mapping.max_iters=7", "source.rosbag.T_body_camera=[1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1]"]
+    )
     assert cfg.mapping.max_iters == 7 and cfg.mapping.rays_per_iter == 1024
     assert cfg.source.synthetic.width == 320
     assert len(cfg.source.rosbag.T_body_camera) == 16

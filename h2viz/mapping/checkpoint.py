@@ -36,7 +36,9 @@ def _keyframe_from_record(rec: dict[str, Any], device: torch.device) -> FrameRay
     rgb = np.zeros((h * w, 3), np.uint8)
     depth[rec["valid"].numpy()] = rec["depth"].numpy()
     rgb[rec["valid"].numpy()] = rec["rgb"].numpy()
-    frame = RgbdFrame(rec["index"], 0.0, rgb.reshape(h, w, 3), depth.reshape(h, w), rec["K"], rec["T_world_camera"])
+    frame = RgbdFrame(
+        rec["index"], 0.0, rgb.reshape(h, w, 3), depth.reshape(h, w), rec["K"], rec["T_world_camera"]
+    )
     return FrameRays(frame, device)
 
 
@@ -80,15 +82,25 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
     except Exception as e:  # noqa: BLE001 - any unpickling failure means the file is unusable
         raise CheckpointError(f"{path} is not a readable h2viz checkpoint ({e})") from e
     if state.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(f"{path} has checkpoint format {state.get('format_version')}, expected {FORMAT_VERSION}")
+        raise CheckpointError(
+            f"{path} has checkpoint format {state.get('format_version')}, expected {FORMAT_VERSION}"
+        )
     saved = MappingConfig(**state["config"])
     if cfg is not None:  # runtime-only settings may change on resume; the map's geometry may not
-        saved = dataclasses.replace(cfg, voxel_size_m=saved.voxel_size_m, truncation_m=saved.truncation_m,
-                                    hash_levels=saved.hash_levels, hash_features=saved.hash_features,
-                                    hash_log2_size=saved.hash_log2_size, hash_scale=saved.hash_scale,
-                                    geo_hidden=saved.geo_hidden, geo_layers=saved.geo_layers,
-                                    color_hidden=saved.color_hidden, color_layers=saved.color_layers,
-                                    priors=saved.priors)
+        saved = dataclasses.replace(
+            cfg,
+            voxel_size_m=saved.voxel_size_m,
+            truncation_m=saved.truncation_m,
+            hash_levels=saved.hash_levels,
+            hash_features=saved.hash_features,
+            hash_log2_size=saved.hash_log2_size,
+            hash_scale=saved.hash_scale,
+            geo_hidden=saved.geo_hidden,
+            geo_layers=saved.geo_layers,
+            color_hidden=saved.color_hidden,
+            color_layers=saved.color_layers,
+            priors=saved.priors,
+        )
     mapper = Mapper(saved)
     mapper.octree.load_state_dict(state["octree"])
     mapper.priors.load_state_dict(state["priors_init"])

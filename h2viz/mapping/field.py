@@ -59,7 +59,9 @@ class HybridField(nn.Module):
             self.priors = grown.requires_grad_(self.priors.requires_grad)
         if octree.n_voxels != self.corner_ids.shape[0]:
             self.corner_ids = torch.from_numpy(octree.voxel_corners).to(dev)
-            self.voxel_origin = torch.from_numpy(octree.voxel_coords()).to(dev, torch.float32) * self.voxel_size_m
+            self.voxel_origin = (
+                torch.from_numpy(octree.voxel_coords()).to(dev, torch.float32) * self.voxel_size_m
+            )
 
     def prior_sdf(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
         """Trilinear interpolation of the 8 corner priors of each point's voxel: (N,3), (N,) -> (N,)."""

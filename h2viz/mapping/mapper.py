@@ -14,6 +14,7 @@ from h2viz.config import MappingConfig
 from h2viz.geometry import backproject
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.keyframes import KeyframeSet
+from h2viz.mapping.losses import mapping_losses
 from h2viz.mapping.meshing import ChunkedMesher, export_mesh, merge_chunks
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.optim import GrowingAdam
@@ -21,7 +22,6 @@ from h2viz.mapping.priors import PriorInitializer
 from h2viz.mapping.raycast import RenderParams, locate, render_image
 from h2viz.mapping.rays import FrameRays, RayBatch
 from h2viz.mapping.rendering import composite, render_weights
-from h2viz.mapping.losses import mapping_losses
 from h2viz.mapping.sampling import band_samples, sample_rays
 from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
 
@@ -49,7 +49,9 @@ class Mapper:
         self.field = HybridField(cfg).to(self.device)
         self.field.priors = self.field.priors.to(self.device).requires_grad_(cfg.priors)
         self.optim = self._make_optimiser()
-        self.keyframes = KeyframeSet(cfg.n_keyframes, cfg.keyframe_iou, cfg.keyframe_max_gap, cfg.keyframe_strategy, cfg.seed)
+        self.keyframes = KeyframeSet(
+            cfg.n_keyframes, cfg.keyframe_iou, cfg.keyframe_max_gap, cfg.keyframe_strategy, cfg.seed
+        )
         self.keyframe_rays: list[FrameRays] = []
         self.thumbnails: list[np.ndarray] = []
         self.mesher = ChunkedMesher(cfg.voxel_size_m, cfg.mesh_resolution, cfg.chunk_voxels)
@@ -66,7 +68,9 @@ class Mapper:
         if self.cfg.priors:
             opt.add("priors", lambda: self.field.priors, sparse=True)  # only corners with gradient move
         fused = {"fused": True} if self.device.type in ("cpu", "cuda") else {}
-        self.net_optim = torch.optim.Adam(self.field.parameters(), lr=self.cfg.lr, betas=(0.9, 0.99), eps=1e-15, **fused)
+        self.net_optim = torch.optim.Adam(
+            self.field.parameters(), lr=self.cfg.lr, betas=(0.9, 0.99), eps=1e-15, **fused
+        )
         return opt
 
     # ----------------------------------------------------------------------------------- pipeline
@@ -100,7 +104,9 @@ class Mapper:
     def _grow(self, new_voxels: np.ndarray) -> None:
         self.field.sync(self.octree)
         self.priors.grow(self.octree.n_corners, new_voxels)
-        self.touched = np.concatenate([self.touched, np.zeros(self.octree.n_voxels - self.touched.size, bool)])
+        self.touched = np.concatenate(
+            [self.touched, np.zeros(self.octree.n_voxels - self.touched.size, bool)]
+        )
 
     @torch.no_grad()
     def _init_priors(self, frame: RgbdFrame) -> None:
@@ -140,7 +146,15 @@ class Mapper:
             samples = sample_rays(self.octree, batch.origins, batch.dirs, batch.depth + tr, c.step_m, True)
         else:  # the truncation band plus stratified free-space samples
             samples = band_samples(
-                self.octree, batch.origins, batch.dirs, batch.depth, c.band_m, tr, c.step_m, c.free_samples, self.rng
+                self.octree,
+                batch.origins,
+                batch.dirs,
+                batch.depth,
+                c.band_m,
+                tr,
+                c.step_m,
+                c.free_samples,
+                self.rng,
             )
         if samples.t.numel() == 0:
             return {"total": torch.zeros(())}
@@ -161,7 +175,9 @@ class Mapper:
         """SDF in metres (N,) at world points (N,3) inside allocated voxels (NaN elsewhere)."""
         out = np.full(points.shape[0], np.nan, dtype=np.float32)
         for i in range(0, points.shape[0], 65536):
-            p = torch.from_numpy(np.ascontiguousarray(points[i : i + 65536], dtype=np.float32)).to(self.device)
+            p = torch.from_numpy(np.ascontiguousarray(points[i : i + 65536], dtype=np.float32)).to(
+                self.device
+            )
             vid = locate(self.octree, p)
             ok = vid >= 0
             s = torch.full((p.shape[0],), float("nan"), device=self.device)
@@ -174,7 +190,9 @@ class Mapper:
         """Colour (N,3) uint8 of the field at world points (N,3)."""
         parts = []
         for i in range(0, points.shape[0], 65536):
-            p = torch.from_numpy(np.ascontiguousarray(points[i : i + 65536], dtype=np.float32)).to(self.device)
+            p = torch.from_numpy(np.ascontiguousarray(points[i : i + 65536], dtype=np.float32)).to(
+                self.device
+            )
             parts.append((self.field.color(p) * 255.0).round().clamp(0, 255).to(torch.uint8).cpu().numpy())
         return np.concatenate(parts) if parts else np.zeros((0, 3), np.uint8)
 
@@ -218,10 +236,14 @@ class Mapper:
     def keyframe_infos(self) -> tuple[KeyframeInfo, ...]:
         return tuple(
             KeyframeInfo(r.index, r.T_world_camera, r.K, r.shape[1], r.shape[0], thumb, state)
-            for r, thumb, state in zip(self.keyframe_rays, self.thumbnails, self.keyframes.states(), strict=True)
+            for r, thumb, state in zip(
+                self.keyframe_rays, self.thumbnails, self.keyframes.states(), strict=True
+            )
         )
 
-    def render(self, K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int, mode: str = "rgb") -> np.ndarray:
+    def render(
+        self, K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int, mode: str = "rgb"
+    ) -> np.ndarray:
         """Render any camera: rgb (H,W,3) [0,1], depth/prior (H,W) metres, normal (H,W,3) [-1,1]."""
         c = self.cfg
         params = RenderParams(

@@ -120,7 +120,9 @@ class VoxelOctree:
 
     def level_coords(self, level: int) -> np.ndarray:
         """(V',3) coordinates of occupied cells `level` octree levels above the leaves (cell = vs * 2**level)."""
-        return np.unique(self.voxel_coords() >> level, axis=0) if self.n_voxels else np.zeros((0, 3), np.int64)
+        return (
+            np.unique(self.voxel_coords() >> level, axis=0) if self.n_voxels else np.zeros((0, 3), np.int64)
+        )
 
     def candidate_voxels(self, points_world: np.ndarray) -> np.ndarray:
         """Keys of voxels holding > min_points points (N,3), plus expanded neighbours."""
@@ -151,7 +153,9 @@ class VoxelOctree:
             corner_keys = encode(coords[:, None, :] + CORNER_OFFSETS[None])  # (n,8)
             cids = self.corners.add(corner_keys.reshape(-1)).reshape(-1, 8)
             self.voxel_corners = np.concatenate([self.voxel_corners, cids])
-        observed = self.voxels.lookup(np.unique(encode(np.floor(points_world / self.voxel_size_m).astype(np.int64))))
+        observed = self.voxels.lookup(
+            np.unique(encode(np.floor(points_world / self.voxel_size_m).astype(np.int64)))
+        )
         return Allocation(new_voxels=new_ids, observed=observed[observed >= 0])
 
     def lookup_points(self, points: torch.Tensor) -> torch.Tensor:
@@ -160,7 +164,11 @@ class VoxelOctree:
         return self.voxels.lookup_torch(encode(coords))
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        return {"voxel_keys": self.voxels.keys, "corner_keys": self.corners.keys, "voxel_corners": self.voxel_corners}
+        return {
+            "voxel_keys": self.voxels.keys,
+            "corner_keys": self.corners.keys,
+            "voxel_corners": self.voxel_corners,
+        }
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self.voxels = KeyIndex.from_keys(state["voxel_keys"])

@@ -72,8 +72,15 @@ class GrowingAdam:
                 p.addcdiv_(slot.m, denom, value=-self.lr / (1 - b1**t))
 
     def _update(
-        self, p: torch.Tensor, m: torch.Tensor, v: torch.Tensor, g: torch.Tensor,
-        rows: torch.Tensor, steps: torch.Tensor, b1: float, b2: float,
+        self,
+        p: torch.Tensor,
+        m: torch.Tensor,
+        v: torch.Tensor,
+        g: torch.Tensor,
+        rows: torch.Tensor,
+        steps: torch.Tensor,
+        b1: float,
+        b2: float,
     ) -> None:
         """Adam on the given rows of (rows, width) views only, with per-row bias correction."""
         steps[rows] += 1

@@ -106,7 +106,9 @@ def render_image(
     dev = field.priors.device
     origins, dirs = pixel_rays(K, T_world_camera, height, width, dev)
     if octree.n_voxels == 0:
-        parts = [torch.zeros(origins.shape[0], 3) if mode in ("rgb", "normal") else torch.zeros(origins.shape[0])]
+        parts = [
+            torch.zeros(origins.shape[0], 3) if mode in ("rgb", "normal") else torch.zeros(origins.shape[0])
+        ]
     else:
         parts = [
             render_rays(field, octree, origins[i : i + chunk], dirs[i : i + chunk], mode, params)

@@ -19,7 +19,9 @@ class RayBatch:
 
     @staticmethod
     def cat(batches: list[RayBatch]) -> RayBatch:
-        return RayBatch(*(torch.cat([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "rgb", "depth")))
+        return RayBatch(
+            *(torch.cat([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "rgb", "depth"))
+        )
 
 
 class FrameRays:
@@ -50,7 +52,11 @@ class FrameRays:
         """n random valid-depth rays (with replacement when the frame has fewer)."""
         P = len(self)
         dev = self.depth.device
-        pick = torch.randint(P, (n,), generator=generator, device="cpu").to(dev) if P else torch.zeros(0, dtype=torch.long)
+        pick = (
+            torch.randint(P, (n,), generator=generator, device="cpu").to(dev)
+            if P
+            else torch.zeros(0, dtype=torch.long)
+        )
         return RayBatch(
             origins=self.origin.expand(pick.numel(), 3),
             dirs=self.dirs[pick],
@@ -73,7 +79,9 @@ def pixel_rays(
         torch.arange(width, device=device, dtype=torch.float32),
         indexing="ij",
     )
-    d_cam = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1).reshape(-1, 3)
+    d_cam = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1).reshape(
+        -1, 3
+    )
     T = torch.from_numpy(np.asarray(T_world_camera)).to(device, torch.float32)
     dirs = d_cam @ T[:3, :3].T
     return T[:3, 3].expand_as(dirs), dirs

@@ -36,7 +36,9 @@ def first_crossing(t: torch.Tensor, sdf: torch.Tensor, ray: torch.Tensor, n_rays
     return out.scatter_reduce(0, ray, t_neg, reduce="amin")
 
 
-def render_weights(samples: Samples, sdf: torch.Tensor, truncation_m: float, temperature: float) -> torch.Tensor:
+def render_weights(
+    samples: Samples, sdf: torch.Tensor, truncation_m: float, temperature: float
+) -> torch.Tensor:
     """Unnormalised weights (S,) with samples beyond the first surface + tr removed."""
     w = torch.sigmoid(sdf / temperature) * torch.sigmoid(-sdf / temperature)
     t_cross = first_crossing(samples.t.detach(), sdf.detach(), samples.ray, samples.n_rays)

@@ -51,7 +51,9 @@ def traverse(
     t_delta = (vs / safe).abs()  # (R,3)
     boundary = (cell + (step > 0).long()).to(origins.dtype) * vs
     t_next = (boundary - origins) / safe  # (R,3)
-    n_steps = int(torch.ceil(((t_far - t_near).clamp(min=0) * dirs.norm(dim=1)).max() / vs * 1.733).item()) + 2
+    n_steps = (
+        int(torch.ceil(((t_far - t_near).clamp(min=0) * dirs.norm(dim=1)).max() / vs * 1.733).item()) + 2
+    )
     cells, t_ins, t_outs = [], [], []
     t_cur = t_near.clone()
     for _ in range(n_steps):
@@ -72,7 +74,9 @@ def traverse(
     return Hits(ray[keep], vid[keep], t_in[keep], t_out[keep])
 
 
-def sample_hits(hits: Hits, origins: torch.Tensor, dirs: torch.Tensor, step_m: float, jitter: bool) -> Samples:
+def sample_hits(
+    hits: Hits, origins: torch.Tensor, dirs: torch.Tensor, step_m: float, jitter: bool
+) -> Samples:
     """Samples every `step_m` (in t) inside each hit segment; stratified jitter when training."""
     length = hits.t_out - hits.t_in  # (H,)
     counts = torch.ceil(length / step_m).long().clamp(min=1)  # (H,)
@@ -101,7 +105,6 @@ def sample_rays(
     samples = sample_hits(hits, origins, dirs, step_m, jitter)
     # A sample rounded onto a voxel face may fall in a neighbour; keep the voxel the traversal found.
     return samples
-
 
 
 def band_samples(

@@ -129,17 +129,29 @@ class FormatInfo:
 FORMATS: dict[str, FormatInfo] = {
     "synthetic": FormatInfo("synthetic", "h2viz.sources.synthetic", "SyntheticSource", "an empty path"),
     "replica": FormatInfo(
-        "replica", "h2viz.sources.replica", "ReplicaSource", "results/frame000000.jpg + results/depth000000.png + traj.txt"
+        "replica",
+        "h2viz.sources.replica",
+        "ReplicaSource",
+        "results/frame000000.jpg + results/depth000000.png + traj.txt",
     ),
     "scannet": FormatInfo(
-        "scannet", "h2viz.sources.scannet", "ScanNetSource", "color/, depth/, pose/ and intrinsic/intrinsic_depth.txt"
+        "scannet",
+        "h2viz.sources.scannet",
+        "ScanNetSource",
+        "color/, depth/, pose/ and intrinsic/intrinsic_depth.txt",
     ),
     "tum": FormatInfo("tum", "h2viz.sources.tum", "TumSource", "rgb.txt + depth.txt + groundtruth.txt"),
     "7scenes": FormatInfo(
-        "7scenes", "h2viz.sources.sevenscenes", "SevenScenesSource", "frame-000000.depth.png + frame-000000.pose.txt"
+        "7scenes",
+        "h2viz.sources.sevenscenes",
+        "SevenScenesSource",
+        "frame-000000.depth.png + frame-000000.pose.txt",
     ),
     "rosbag": FormatInfo(
-        "rosbag", "h2viz.sources.rosbag", "RosbagSource", "a .bag file, a .mcap/.db3 file or a folder with metadata.yaml"
+        "rosbag",
+        "h2viz.sources.rosbag",
+        "RosbagSource",
+        "a .bag file, a .mcap/.db3 file or a folder with metadata.yaml",
     ),
 }
 
@@ -162,7 +174,9 @@ def detect_format(path: str | Path) -> str:
         if fmt != "synthetic" and _detector(fmt)(p):
             return fmt
     looked = "\n".join(f"  - {f}: {i.looks_for}" for f, i in FORMATS.items() if f != "synthetic")
-    raise SourceError(f"could not recognise the layout of {p}. Looked for:\n{looked}\nPass --format to choose one.")
+    raise SourceError(
+        f"could not recognise the layout of {p}. Looked for:\n{looked}\nPass --format to choose one."
+    )
 
 
 def make_source(cfg: SourceConfig) -> FrameSource:
@@ -193,7 +207,9 @@ def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
         raise FrameError(f"{path}: not a whitespace-separated matrix of numbers") from e
     n = shape[0] * shape[1]
     if values.size < n:
-        raise FrameError(f"{path}: expected {n} numbers for a {shape[0]}x{shape[1]} matrix, found {values.size}")
+        raise FrameError(
+            f"{path}: expected {n} numbers for a {shape[0]}x{shape[1]} matrix, found {values.size}"
+        )
     return values[:n].reshape(shape)
 
 

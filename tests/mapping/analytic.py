@@ -55,7 +55,9 @@ class Scene:
 
     def color(self, p: np.ndarray) -> np.ndarray:
         """A smooth colour pattern (N,3) uint8 on the surface."""
-        c = 0.5 + 0.35 * np.stack([np.sin(4 * p[:, 0]), np.cos(3 * p[:, 1]), np.sin(2.5 * (p[:, 0] + p[:, 2]))], 1)
+        c = 0.5 + 0.35 * np.stack(
+            [np.sin(4 * p[:, 0]), np.cos(3 * p[:, 1]), np.sin(2.5 * (p[:, 0] + p[:, 2]))], 1
+        )
         return (255 * np.clip(c, 0, 1)).astype(np.uint8)
 
     def frame(self, index: int, T_world_camera: np.ndarray, width: int = 96, height: int = 72) -> RgbdFrame:
@@ -66,7 +68,9 @@ class Scene:
         pts = o + d * np.where(hit, t, 0)[:, None]
         rgb = np.where(hit[:, None], self.color(pts), 0).astype(np.uint8)
         depth = np.where(hit, t, 0).astype(np.float32)
-        return RgbdFrame(index, index / 30, rgb.reshape(height, width, 3), depth.reshape(height, width), K, T_world_camera)
+        return RgbdFrame(
+            index, index / 30, rgb.reshape(height, width, 3), depth.reshape(height, width), K, T_world_camera
+        )
 
 
 def orbit(scene: Scene, n: int, radius: float, height: float, target: np.ndarray) -> list[np.ndarray]:

@@ -53,7 +53,10 @@ def test_training_makes_rendered_depth_and_colour_match_a_box_room() -> None:
     target = np.array([0.0, 0.0, 0.9])
     angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
     poses = [
-        look_at(target + 0.3 * np.array([np.cos(a), np.sin(a), 0.3]), target + 2 * np.array([np.cos(a + 2), np.sin(a + 2), -0.2]))
+        look_at(
+            target + 0.3 * np.array([np.cos(a), np.sin(a), 0.3]),
+            target + 2 * np.array([np.cos(a + 2), np.sin(a + 2), -0.2]),
+        )
         for a in angles
     ]
     frames = [scene.frame(i, T, width=64, height=48) for i, T in enumerate(poses)]

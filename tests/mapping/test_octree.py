@@ -8,7 +8,9 @@ import torch
 from h2viz.mapping.octree import CORNER_OFFSETS, KeyIndex, VoxelOctree, decode, encode
 
 
-def cloud_in_voxel(coord: tuple[int, int, int], n: int, lo: float = 0.3, hi: float = 0.7, vs: float = 0.1) -> np.ndarray:
+def cloud_in_voxel(
+    coord: tuple[int, int, int], n: int, lo: float = 0.3, hi: float = 0.7, vs: float = 0.1
+) -> np.ndarray:
     rng = np.random.default_rng(0)
     return (np.array(coord) + rng.uniform(lo, hi, size=(n, 3))) * vs
 
@@ -76,7 +78,9 @@ def test_allocation_is_incremental_and_observed_lists_seen_voxels() -> None:
 
 def test_lookup_points_and_levels() -> None:
     tree = VoxelOctree(0.1, min_points=0, expansion=False)
-    tree.allocate(np.concatenate([cloud_in_voxel(c, 3) for c in [(0, 0, 0), (1, 1, 1), (-1, 0, 0), (5, 0, 0)]]))
+    tree.allocate(
+        np.concatenate([cloud_in_voxel(c, 3) for c in [(0, 0, 0), (1, 1, 1), (-1, 0, 0), (5, 0, 0)]])
+    )
     ids = tree.lookup_points(torch.tensor([[0.05, 0.05, 0.05], [-0.05, 0.05, 0.05], [0.25, 0.0, 0.0]]))
     coords = tree.voxel_coords()
     assert coords[ids[0]].tolist() == [0, 0, 0] and coords[ids[1]].tolist() == [-1, 0, 0] and ids[2] == -1

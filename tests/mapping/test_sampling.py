@@ -31,7 +31,13 @@ def test_traversal_finds_exactly_the_voxels_a_dense_march_finds() -> None:
     origins = rng.uniform(-0.7, 0.7, size=(40, 3))
     dirs = rng.normal(size=(40, 3))
     dirs /= np.abs(dirs[:, 2:3]) + 0.3  # arbitrary, not unit length
-    hits = traverse(tree, torch.tensor(origins).float(), torch.tensor(dirs).float(), torch.zeros(40), torch.full((40,), 1.5))
+    hits = traverse(
+        tree,
+        torch.tensor(origins).float(),
+        torch.tensor(dirs).float(),
+        torch.zeros(40),
+        torch.full((40,), 1.5),
+    )
     for r in range(40):
         found = set(hits.voxel[hits.ray == r].tolist())
         expected = brute_force_voxels(tree, origins[r], dirs[r], 1.5)
@@ -57,7 +63,10 @@ def test_samples_lie_in_their_voxels_and_are_ordered() -> None:
     assert bool((s.t[1:][same] >= s.t[:-1][same] - 1e-6).all())
     # roughly one sample per centimetre of voxel interior crossed
     hits = traverse(tree, o, d, torch.zeros(64), torch.full((64,), 2.0))
-    assert abs(s.t.numel() - float(((hits.t_out - hits.t_in) / 0.01).sum())) < 0.1 * s.t.numel() + hits.ray.numel()
+    assert (
+        abs(s.t.numel() - float(((hits.t_out - hits.t_in) / 0.01).sum()))
+        < 0.1 * s.t.numel() + hits.ray.numel()
+    )
 
 
 def test_rendered_depth_of_an_exact_plane_sdf() -> None:
