@@ -80,7 +80,7 @@ def cmd_map(args: argparse.Namespace) -> int:
 def cmd_view(args: argparse.Namespace) -> int:
     from h2viz.viewer.server import run_view
 
-    run_view(build_config(args))
+    run_view(build_config(args), on_ready=lambda url: print(f"h2viz dashboard: {url}  (Ctrl-C to stop)", flush=True))
     return 0
 
 
