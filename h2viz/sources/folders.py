@@ -12,7 +12,8 @@ import numpy as np
 
 from h2viz.config import SourceConfig
 from h2viz.errors import FrameError, SourceError
-from h2viz.sources.base import read_matrix
+from h2viz.sources.base import read_color, read_depth, read_matrix
+from h2viz.types import RgbdFrame
 
 log = logging.getLogger("h2viz.sources")
 
@@ -99,3 +100,21 @@ def fit_color_to_depth(rgb: np.ndarray, depth_shape: tuple[int, int], color_path
         )
     interp = cv2.INTER_AREA if cw > w else cv2.INTER_LINEAR
     return cv2.resize(rgb, (w, h), interpolation=interp)
+
+
+def numbered_frame(
+    position: int,
+    number: int,
+    color_path: Path,
+    depth_path: Path,
+    scale_m: float,
+    K: np.ndarray,
+    T_world_camera: np.ndarray,
+    invalid: int | None = None,
+    fps: float = 30.0,
+) -> RgbdFrame:
+    """A frame of a numbered-file layout: depth in metres, colour fitted to the depth size,
+    timestamp = file number / fps (these layouts carry no timestamps)."""
+    depth_m = read_depth(depth_path, scale_m, invalid=invalid)
+    rgb = fit_color_to_depth(read_color(color_path), depth_m.shape, color_path)
+    return RgbdFrame(position, number / fps, rgb, depth_m, K, T_world_camera, name=str(depth_path))

@@ -16,13 +16,13 @@ import numpy as np
 
 from h2viz.config import SourceConfig
 from h2viz.errors import FrameError, SourceError
-from h2viz.sources.base import FrameSource, read_color, read_depth
+from h2viz.sources.base import FrameSource
 from h2viz.sources.folders import (
     configured_intrinsics,
     depth_scale_m,
-    fit_color_to_depth,
     has_numbered_file,
     numbered_files,
+    numbered_frame,
     pinhole,
     require_folder,
 )
@@ -30,7 +30,6 @@ from h2viz.types import RgbdFrame
 
 log = logging.getLogger("h2viz.sources")
 
-FPS = 30.0
 DEPTH_SCALE_M = 1.0 / 6553.5
 DEFAULT_SIZE = (1200, 680)  # width, height of the images the default intrinsics belong to
 DEFAULT_K = pinhole(600.0, 600.0, 599.5, 339.5)
@@ -114,14 +113,4 @@ class ReplicaSource(FrameSource):
         T = self.poses[key]
         if T is None or not np.all(np.isfinite(T)):
             raise FrameError(f"{self.traj_path} pose {key + 1}: not 16 finite numbers; frame {key} skipped")
-        depth_m = read_depth(depth_path, self.scale_m)
-        rgb = fit_color_to_depth(read_color(color_path), depth_m.shape, color_path)
-        return RgbdFrame(
-            index=position,
-            timestamp=key / FPS,
-            rgb=rgb,
-            depth_m=depth_m,
-            K=self.K,
-            T_world_camera=T,
-            name=str(depth_path),
-        )
+        return numbered_frame(position, key, color_path, depth_path, self.scale_m, self.K, T)

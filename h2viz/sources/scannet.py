@@ -12,20 +12,19 @@ from pathlib import Path
 
 from h2viz.config import SourceConfig
 from h2viz.errors import SourceError
-from h2viz.sources.base import FrameSource, read_color, read_depth
+from h2viz.sources.base import FrameSource
 from h2viz.sources.folders import (
     configured_intrinsics,
     depth_scale_m,
-    fit_color_to_depth,
     has_numbered_file,
     numbered_files,
+    numbered_frame,
     read_intrinsics_file,
     read_pose_file,
     require_folder,
 )
 from h2viz.types import RgbdFrame
 
-FPS = 30.0
 DEPTH_SCALE_M = 1.0 / 1000.0
 COLOR_PATTERN = r"(\d+)\.jpg"
 DEPTH_PATTERN = r"(\d+)\.png"
@@ -45,9 +44,7 @@ class ScanNetSource(FrameSource):
         if not self.ids:
             raise SourceError(f"{self.root}: no color/<n>.jpg or depth/<n>.png images found")
         if not (self.root / "pose").is_dir():
-            raise SourceError(
-                f"{self.root / 'pose'}: pose folder is missing; ScanNet needs pose/<n>.txt files"
-            )
+            raise SourceError(f"{self.root / 'pose'}: pose folder is missing; ScanNet needs pose/<n>.txt files")
         K = configured_intrinsics(cfg)
         if K is None:
             K = read_intrinsics_file(self.root / "intrinsic" / "intrinsic_depth.txt", (4, 4))
@@ -74,14 +71,4 @@ class ScanNetSource(FrameSource):
         depth_path = self.depths.get(key, self.root / "depth" / f"{key}.png")
         stem = (self.depths.get(key) or color_path).stem
         T = read_pose_file(self.root / "pose" / f"{stem}.txt")
-        depth_m = read_depth(depth_path, self.scale_m)
-        rgb = fit_color_to_depth(read_color(color_path), depth_m.shape, color_path)
-        return RgbdFrame(
-            index=position,
-            timestamp=key / FPS,
-            rgb=rgb,
-            depth_m=depth_m,
-            K=self.K,
-            T_world_camera=T,
-            name=str(depth_path),
-        )
+        return numbered_frame(position, key, color_path, depth_path, self.scale_m, self.K, T)

@@ -17,13 +17,13 @@ import numpy as np
 
 from h2viz.config import SourceConfig
 from h2viz.errors import SourceError
-from h2viz.sources.base import FrameSource, read_color, read_depth
+from h2viz.sources.base import FrameSource
 from h2viz.sources.folders import (
     configured_intrinsics,
     depth_scale_m,
-    fit_color_to_depth,
     has_numbered_file,
     numbered_files,
+    numbered_frame,
     pinhole,
     read_intrinsics_file,
     read_pose_file,
@@ -33,7 +33,6 @@ from h2viz.types import RgbdFrame
 
 log = logging.getLogger("h2viz.sources")
 
-FPS = 30.0
 DEPTH_SCALE_M = 1.0 / 1000.0
 INVALID_DEPTH = 65535
 DEFAULT_K = pinhole(585.0, 585.0, 320.0, 240.0)
@@ -64,9 +63,7 @@ class SevenScenesSource(FrameSource):
         if not self.ids:
             seqs = sorted(p.name for p in self.root.glob("seq-*") if p.is_dir())
             hint = f"; pass one of its sequence folders ({', '.join(seqs)})" if seqs else ""
-            raise SourceError(
-                f"{self.root}: no frame-%06d.depth.png / .color.png / .pose.txt files found{hint}"
-            )
+            raise SourceError(f"{self.root}: no frame-%06d.depth.png / .color.png / .pose.txt files found{hint}")
         if not has_numbered_file(self.root, POSE_PATTERN):
             raise SourceError(f"{self.root}: no frame-%06d.pose.txt files; 7-Scenes frames need their poses")
         K = configured_intrinsics(cfg)
@@ -99,14 +96,4 @@ class SevenScenesSource(FrameSource):
             color_path = stem.with_name(stem.name + ".color.jpg")
         depth_path = stem.with_name(stem.name + ".depth.png")
         T = read_pose_file(stem.with_name(stem.name + ".pose.txt"))
-        depth_m = read_depth(depth_path, self.scale_m, invalid=INVALID_DEPTH)
-        rgb = fit_color_to_depth(read_color(color_path), depth_m.shape, color_path)
-        return RgbdFrame(
-            index=position,
-            timestamp=key / FPS,
-            rgb=rgb,
-            depth_m=depth_m,
-            K=self.K,
-            T_world_camera=T,
-            name=str(depth_path),
-        )
+        return numbered_frame(position, key, color_path, depth_path, self.scale_m, self.K, T, invalid=INVALID_DEPTH)
