@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from h2viz.geometry import invert_se3
+from h2viz.geometry import invert_se3, slerp
 
 POSE_TYPES = (
     "geometry_msgs/msg/PoseStamped",
@@ -29,21 +29,6 @@ def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
     R[:, 1] = np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1)
     R[:, 2] = np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1)
     return R
-
-
-def slerp(q0: np.ndarray, q1: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """Spherical interpolation (N,4) between unit quaternions q0, q1 (N,4) at fractions a (N,)."""
-    dot = np.sum(q0 * q1, axis=-1)
-    q1 = np.where(dot[:, None] < 0, -q1, q1)  # shortest arc
-    dot = np.abs(dot)
-    theta = np.arccos(np.clip(dot, -1.0, 1.0))
-    sin = np.sin(theta)
-    near = sin < 1e-6
-    safe = np.where(near, 1.0, sin)
-    w0 = np.where(near, 1.0 - a, np.sin((1.0 - a) * theta) / safe)
-    w1 = np.where(near, a, np.sin(a * theta) / safe)
-    q = w0[:, None] * q0 + w1[:, None] * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def compose(t_xyz: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:

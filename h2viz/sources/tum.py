@@ -18,7 +18,7 @@ import numpy as np
 
 from h2viz.config import SourceConfig
 from h2viz.errors import FrameError, SourceError
-from h2viz.geometry import pose_from_tq
+from h2viz.geometry import pose_from_tq, slerp
 from h2viz.sources.base import FrameSource, read_color, read_depth
 from h2viz.sources.folders import (
     configured_intrinsics,
@@ -94,22 +94,6 @@ def nearest(times: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndar
     lo = np.maximum(j - 1, 0)
     pick = np.where(np.abs(times[lo] - queries) <= np.abs(times[j] - queries), lo, j)
     return pick, np.abs(times[pick] - queries)
-
-
-def slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """Spherical interpolation of unit quaternions (N,4) at fractions alpha (N,), shortest arc."""
-    q0 = q0 / np.linalg.norm(q0, axis=1, keepdims=True)
-    q1 = q1 / np.linalg.norm(q1, axis=1, keepdims=True)
-    dot = np.sum(q0 * q1, axis=1)
-    q1 = np.where(dot[:, None] < 0, -q1, q1)
-    theta = np.arccos(np.clip(np.abs(dot), 0.0, 1.0))  # (N,)
-    sin = np.sin(theta)
-    small = sin < 1e-9
-    safe = np.where(small, 1.0, sin)
-    w0 = np.where(small, 1.0 - alpha, np.sin((1.0 - alpha) * theta) / safe)
-    w1 = np.where(small, alpha, np.sin(alpha * theta) / safe)
-    q = w0[:, None] * q0 + w1[:, None] * q1
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def interpolate_poses(
