@@ -22,12 +22,8 @@ FORMAT_CHOICES = ["auto", "synthetic", "replica", "scannet", "tum", "7scenes", "
 
 
 def _source_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--data", default="", help="dataset folder or bag file (default: the built-in synthetic scene)"
-    )
-    p.add_argument(
-        "--format", default=None, choices=FORMAT_CHOICES, help="data layout (default: auto-detect)"
-    )
+    p.add_argument("--data", default="", help="dataset folder or bag file (default: the built-in synthetic scene)")
+    p.add_argument("--format", default=None, choices=FORMAT_CHOICES, help="data layout (default: auto-detect)")
     p.add_argument("--config", action="append", default=[], help="YAML config file (repeatable, later wins)")
     p.add_argument("--frames", type=int, default=None, help="stop after N frames")
     p.add_argument("--stride", type=int, default=None, help="use every K-th frame")
@@ -72,7 +68,7 @@ def cmd_map(args: argparse.Namespace) -> int:
     from h2viz.pipeline import run_map
 
     cfg = build_config(args)
-    result = run_map(cfg, resume=args.resume, gt_mesh=args.gt_mesh, progress=not args.quiet)
+    result = run_map(cfg, resume=args.resume, gt_mesh=args.gt_mesh, progress=not args.quiet, realtime=args.realtime)
     print(result.summary())
     return 0
 
@@ -128,19 +124,20 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def make_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="h2viz", description="Live H2-Mapping of RGB-D frames, in the browser."
-    )
+    parser = argparse.ArgumentParser(prog="h2viz", description="Live H2-Mapping of RGB-D frames, in the browser.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("map", help="map a sequence headless and write mesh, checkpoint, stats and metrics")
     _source_args(p)
     p.add_argument("--out", default="", help="output folder (default: outputs/<format>-<time>)")
-    p.add_argument(
-        "--resume", type=Path, default=None, help="continue from a checkpoint.pt of an earlier run"
-    )
+    p.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint.pt of an earlier run")
     p.add_argument("--gt-mesh", type=Path, default=None, help="ground-truth mesh for metrics.json")
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="play the source at its own frame rate and map the newest frame whenever the mapper is free",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_map)
 

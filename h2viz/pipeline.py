@@ -7,6 +7,7 @@ import dataclasses
 import json
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ from h2viz.mapping.checkpoint import load_checkpoint, save_checkpoint
 from h2viz.mapping.mapper import Mapper
 from h2viz.sources.base import FrameSource, make_source
 from h2viz.types import FrameStats, RgbdFrame
+from h2viz.worker.feed import END, FrameFeed, WorkerSettings
 
 log = logging.getLogger("h2viz.map")
 
@@ -33,11 +35,12 @@ class RunResult:
     stats: list[FrameStats]
     metrics: dict[str, Any] = field(default_factory=dict)
     skipped: int = 0
+    dropped: int = 0  # real-time mode: frames that arrived while the mapper was busy
 
     def summary(self) -> str:
         times = np.array([s.map_time_s for s in self.stats]) if self.stats else np.zeros(1)
         lines = [
-            f"mapped {len(self.stats)} frames ({self.skipped} skipped); per-frame time median "
+            f"mapped {len(self.stats)} frames ({self.skipped} skipped, {self.dropped} dropped); per-frame time median "
             f"{np.median(times):.3f} s, p90 {np.percentile(times, 90):.3f} s",
         ]
         if self.metrics:
@@ -91,10 +94,39 @@ def evaluate(
     return metrics
 
 
+class RealtimeStream:
+    """The source played at its timestamps' own rate; when the mapper is busy, only the newest frame waits and
+    older unmapped ones are dropped (counted in `dropped`)."""
+
+    def __init__(self, source: FrameSource, cfg: Config) -> None:
+        settings = WorkerSettings(realtime=True, stride=max(1, cfg.source.stride))
+        self._feed = FrameFeed(source, settings, cfg.source.max_frames)
+
+    @property
+    def dropped(self) -> int:
+        return self._feed.dropped
+
+    def __iter__(self) -> Iterator[tuple[int, RgbdFrame]]:
+        self._feed.start()
+        try:
+            position = 0
+            while (item := self._feed.take(timeout_s=1.0)) is not END:
+                if item is not None:
+                    yield position, item
+                    position += 1
+        finally:
+            self._feed.stop()
+
+
 def run_map(
-    cfg: Config, resume: Path | None = None, gt_mesh: Path | None = None, progress: bool = True
+    cfg: Config,
+    resume: Path | None = None,
+    gt_mesh: Path | None = None,
+    progress: bool = True,
+    realtime: bool = False,
 ) -> RunResult:
-    """Map every frame of the configured source and write the run's outputs."""
+    """Map every frame of the configured source (or, in real-time mode, the newest frame whenever the mapper is
+    free) and write the run's outputs."""
     source = make_source(cfg.source)
     out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
@@ -105,8 +137,9 @@ def run_map(
     eval_frames = EvalFrames(total, cfg.eval.n_interpolate)
     stats: list[FrameStats] = []
     bar = tqdm(total=total, disable=not progress, unit="frame", dynamic_ncols=True)
-    for position, frame in enumerate(source):
-        bar.update(1)
+    stream = RealtimeStream(source, cfg) if realtime else None
+    for position, frame in stream if stream is not None else enumerate(source):
+        bar.update(position + 1 + (stream.dropped if stream is not None else 0) - bar.n)  # frames read so far
         eval_frames.add(position, frame)
         if frame.index <= last_index:
             continue
@@ -122,11 +155,12 @@ def run_map(
     metrics = evaluate(mapper, mesh, gt, eval_frames, cfg) if gt is not None else {}
     if metrics:
         write_metrics(metrics, out / "metrics.json")
-    _write_stats(out / "stats.json", stats, source)
-    return RunResult(out, stats, metrics, len(source.skipped))
+    dropped = stream.dropped if stream is not None else 0
+    _write_stats(out / "stats.json", stats, source, dropped)
+    return RunResult(out, stats, metrics, len(source.skipped), dropped)
 
 
-def _write_stats(path: Path, stats: list[FrameStats], source: FrameSource) -> None:
+def _write_stats(path: Path, stats: list[FrameStats], source: FrameSource, dropped: int) -> None:
     times = [s.map_time_s for s in stats]
     doc = {
         "frames": [dataclasses.asdict(s) for s in stats],
@@ -135,6 +169,7 @@ def _write_stats(path: Path, stats: list[FrameStats], source: FrameSource) -> No
             "median_map_time_s": float(np.median(times)) if times else None,
             "p90_map_time_s": float(np.percentile(times, 90)) if times else None,
             "mean_iterations": float(np.mean([s.iterations for s in stats])) if stats else None,
+            "dropped_frames": dropped,
         },
         "skipped": [dataclasses.asdict(s) for s in source.skipped],
     }

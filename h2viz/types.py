@@ -106,6 +106,8 @@ class FrameStats:
     n_voxels: int
     n_keyframes: int
     losses: dict[str, float] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+    """Seconds per stage: allocation, keyframes, sampling, forward, backward, optimiser."""
 
 
 @dataclass(frozen=True)

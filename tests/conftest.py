@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+import h2viz  # noqa: F401  (sets the thread-pool policy before NumPy and torch load)
+
 
 def shared_data(name: str) -> Path:
     """Path of a real dataset folder (or file) in ../shared/data relative to the repository root."""

@@ -41,6 +41,8 @@ def test_map_writes_mesh_checkpoint_config_stats_and_metrics(run_dir: Path) -> N
         assert (
             f["map_time_s"] > 0 and 1 <= f["iterations"] <= 5 and f["n_voxels"] > 0 and f["n_keyframes"] >= 1
         )
+        stages = {"allocation", "keyframes", "sampling", "forward", "backward", "optimiser"}
+        assert set(f["timings"]) == stages and sum(f["timings"].values()) <= f["map_time_s"]
     metrics = json.loads((run_dir / "metrics.json").read_text())
     # six low-resolution frames with five iterations each: a coarse map, but a real one
     assert metrics["mesh"]["acc_cm"] < 5.0 and metrics["mesh"]["comp_ratio"] > 60, metrics["mesh"]
@@ -55,6 +57,15 @@ def test_resume_continues_after_the_last_frame(run_dir: Path, tmp_path: Path) ->
     stats = json.loads((out / "stats.json").read_text())
     assert [f["index"] for f in stats["frames"]] == [60, 70]  # frames 0-50 came from the checkpoint
     assert stats["frames"][0]["n_keyframes"] > 1
+
+
+def test_realtime_maps_the_newest_frame_and_counts_the_dropped(tmp_path: Path) -> None:
+    out = tmp_path / "realtime"
+    assert main(["map", "--realtime", "--frames", "30", "--out", str(out), "-q", *TINY]) == 0
+    stats = json.loads((out / "stats.json").read_text())
+    mapped = [f["index"] for f in stats["frames"]]
+    assert mapped == sorted(set(mapped)) and mapped[-1] == 29  # in order, and the newest frame is never lost
+    assert len(mapped) + stats["summary"]["dropped_frames"] == 30
 
 
 def test_eval_prints_a_table_and_writes_metrics(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

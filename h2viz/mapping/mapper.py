@@ -21,8 +21,9 @@ from h2viz.mapping.optim import GrowingAdam
 from h2viz.mapping.priors import PriorInitializer
 from h2viz.mapping.raycast import RenderParams, locate, render_image
 from h2viz.mapping.rays import FrameRays, RayBatch
-from h2viz.mapping.rendering import composite, render_weights
-from h2viz.mapping.sampling import band_samples, sample_rays
+from h2viz.mapping.rendering import composite, live_samples, render_weights
+from h2viz.mapping.sampling import Samples, band_samples, sample_rays
+from h2viz.timing import StageTimer
 from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
 
 
@@ -77,15 +78,19 @@ class Mapper:
     def integrate(self, frame: RgbdFrame) -> FrameStats:
         """Map one frame; the steps follow the paper."""
         start = time.perf_counter()
-        rays = FrameRays(frame, self.device)
-        points = backproject(frame.depth_m, frame.K, frame.T_world_camera)  # valid depth -> world points
-        alloc = self.octree.allocate(points)  # voxels with > 10 points (+ expanded neighbours)
-        self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
-        self._init_priors(frame)  # project new corners into the depth image
-        if self.keyframes.should_insert(frame.index, alloc.observed):  # IoU / max-gap rule
-            self._add_keyframe(frame, rays, alloc.observed)
-        selected = self.keyframes.select(alloc.observed, frame.index)  # coverage-maximising K keyframes
-        iters, losses = self._optimise([rays, *(self.keyframe_rays[i] for i in selected)])  # early ending
+        timer = StageTimer()
+        with timer("allocation"):
+            rays = FrameRays(frame, self.device)
+            points = backproject(frame.depth_m, frame.K, frame.T_world_camera)  # valid depth -> world points
+            alloc = self.octree.allocate(points)  # voxels with > 10 points (+ expanded neighbours)
+            self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
+            self._init_priors(frame)  # project new corners into the depth image
+        with timer("keyframes"):
+            if self.keyframes.should_insert(frame.index, alloc.observed):  # IoU / max-gap rule
+                self._add_keyframe(frame, rays, alloc.observed)
+            selected = self.keyframes.select(alloc.observed, frame.index)  # coverage-maximising K keyframes
+        frames = [rays, *(self.keyframe_rays[i] for i in selected)]
+        iters, losses = self._optimise(frames, timer)  # at most max_iters, early ending
         self.touched[alloc.new_voxels] = True  # new voxels' chunks must be meshed
         self.trajectory.append(frame.T_world_camera)
         self.frames_done += 1
@@ -99,14 +104,13 @@ class Mapper:
             n_voxels=self.octree.n_voxels,
             n_keyframes=len(self.keyframes),
             losses=losses,
+            timings=timer.seconds,
         )
 
     def _grow(self, new_voxels: np.ndarray) -> None:
         self.field.sync(self.octree)
         self.priors.grow(self.octree.n_corners, new_voxels)
-        self.touched = np.concatenate(
-            [self.touched, np.zeros(self.octree.n_voxels - self.touched.size, bool)]
-        )
+        self.touched = np.concatenate([self.touched, np.zeros(self.octree.n_voxels - self.touched.size, bool)])
 
     @torch.no_grad()
     def _init_priors(self, frame: RgbdFrame) -> None:
@@ -125,13 +129,15 @@ class Mapper:
         n = max(1, self.cfg.rays_per_iter // len(frames))
         return RayBatch.cat([f.sample(n, self.rng) for f in frames if len(f)])
 
-    def _optimise(self, frames: list[FrameRays]) -> tuple[int, dict[str, float]]:
+    def _optimise(self, frames: list[FrameRays], timer: StageTimer) -> tuple[int, dict[str, float]]:
         """Up to max_iters Adam steps; stop when the loss exceeds its running mean twice in a row."""
         history: list[float] = []
         above = 0
         terms: dict[str, torch.Tensor] = {}
         for it in range(self.cfg.max_iters):
-            terms = self._step(self._batch(frames))
+            with timer("sampling"):
+                samples, batch = self._samples(frames)
+            terms = self._step(samples, batch, timer)
             loss = float(terms["total"])
             above = above + 1 if history and loss > float(np.mean(history)) else 0
             history.append(loss)
@@ -139,33 +145,44 @@ class Mapper:
                 return it + 1, {k: float(v) for k, v in terms.items()}
         return self.cfg.max_iters, {k: float(v) for k, v in terms.items()}
 
-    def _step(self, batch: RayBatch) -> dict[str, torch.Tensor]:
-        tr = self.cfg.truncation_m
+    def _samples(self, frames: list[FrameRays]) -> tuple[Samples, RayBatch]:
+        """A batch of rays and their samples: the truncation band plus free space, or the paper's dense march."""
         c = self.cfg
-        if c.free_samples < 0:  # the paper: every 1 cm of every allocated voxel the ray crosses
-            samples = sample_rays(self.octree, batch.origins, batch.dirs, batch.depth + tr, c.step_m, True)
-        else:  # the truncation band plus stratified free-space samples
-            samples = band_samples(
-                self.octree,
-                batch.origins,
-                batch.dirs,
-                batch.depth,
-                c.band_m,
-                tr,
-                c.step_m,
-                c.free_samples,
-                self.rng,
-            )
+        batch = self._batch(frames)
+        if c.free_samples < 0:  # every 1 cm of every allocated voxel the ray crosses
+            far = batch.depth + c.truncation_m
+            return sample_rays(self.octree, batch.origins, batch.dirs, far, c.step_m, True), batch
+        samples = band_samples(
+            self.octree,
+            batch.origins,
+            batch.dirs,
+            batch.depth,
+            c.band_m,
+            c.truncation_m,
+            c.step_m,
+            c.free_samples,
+            self.rng,
+        )
+        return samples, batch
+
+    def _step(self, samples: Samples, batch: RayBatch, timer: StageTimer) -> dict[str, torch.Tensor]:
+        """One Adam step on the four losses; colour is evaluated only where the render weights matter."""
         if samples.t.numel() == 0:
             return {"total": torch.zeros(())}
-        sdf, rgb = self.field(samples.points, samples.voxel)
-        render = composite(samples, render_weights(samples, sdf, tr, self.cfg.render_temperature), rgb)
-        terms = mapping_losses(samples, sdf, render, batch.rgb, batch.depth, self.cfg)
-        self.optim.zero_grad()
-        self.net_optim.zero_grad()
-        terms["total"].backward()
-        self.optim.step()
-        self.net_optim.step()
+        with timer("forward"):
+            sdf = self.field.sdf(samples.points, samples.voxel)  # (S,) truncation units
+            weights = render_weights(samples, sdf, self.cfg.truncation_m, self.cfg.render_temperature)  # (S,)
+            live = live_samples(weights)  # (S',)
+            rgb = self.field.color(samples.points[live])  # (S',3)
+            render = composite(samples, weights, rgb, live)
+            terms = mapping_losses(samples, sdf, render, batch.rgb, batch.depth, self.cfg)
+        with timer("backward"):
+            self.optim.zero_grad()
+            self.net_optim.zero_grad()
+            terms["total"].backward()
+        with timer("optimiser"):
+            self.optim.step()
+            self.net_optim.step()
         self.touched[torch.unique(samples.voxel).cpu().numpy()] = True
         return {k: v.detach() for k, v in terms.items()}
 
@@ -175,9 +192,7 @@ class Mapper:
         """SDF in metres (N,) at world points (N,3) inside allocated voxels (NaN elsewhere)."""
         out = np.full(points.shape[0], np.nan, dtype=np.float32)
         for i in range(0, points.shape[0], 65536):
-            p = torch.from_numpy(np.ascontiguousarray(points[i : i + 65536], dtype=np.float32)).to(
-                self.device
-            )
+            p = torch.from_numpy(np.ascontiguousarray(points[i : i + 65536], dtype=np.float32)).to(self.device)
             vid = locate(self.octree, p)
             ok = vid >= 0
             s = torch.full((p.shape[0],), float("nan"), device=self.device)
@@ -190,9 +205,7 @@ class Mapper:
         """Colour (N,3) uint8 of the field at world points (N,3)."""
         parts = []
         for i in range(0, points.shape[0], 65536):
-            p = torch.from_numpy(np.ascontiguousarray(points[i : i + 65536], dtype=np.float32)).to(
-                self.device
-            )
+            p = torch.from_numpy(np.ascontiguousarray(points[i : i + 65536], dtype=np.float32)).to(self.device)
             parts.append((self.field.color(p) * 255.0).round().clamp(0, 255).to(torch.uint8).cpu().numpy())
         return np.concatenate(parts) if parts else np.zeros((0, 3), np.uint8)
 
@@ -236,9 +249,7 @@ class Mapper:
     def keyframe_infos(self) -> tuple[KeyframeInfo, ...]:
         return tuple(
             KeyframeInfo(r.index, r.T_world_camera, r.K, r.shape[1], r.shape[0], thumb, state)
-            for r, thumb, state in zip(
-                self.keyframe_rays, self.thumbnails, self.keyframes.states(), strict=True
-            )
+            for r, thumb, state in zip(self.keyframe_rays, self.thumbnails, self.keyframes.states(), strict=True)
         )
 
     def render(

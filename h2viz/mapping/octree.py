@@ -29,6 +29,35 @@ def decode(keys: np.ndarray) -> np.ndarray:
     return np.stack([(keys >> 42) & mask, (keys >> 21) & mask, keys & mask], axis=-1) - OFFSET
 
 
+@dataclass
+class OccupiedCells:
+    """Distinct integer cells of a point set."""
+
+    coords: np.ndarray  # (M,3) int64, distinct
+    inverse: np.ndarray  # (N,) index into coords of each point
+    counts: np.ndarray  # (M,) points per cell
+
+
+def occupied_cells(coords: np.ndarray, max_bins: int = 1 << 22) -> OccupiedCells:
+    """Distinct cells of integer coords (N,3) with per-point inverse and counts. Counts on a dense local grid
+    (linear time) when the points' bounding box is small enough, else by sorting."""
+    if coords.shape[0] == 0:
+        return OccupiedCells(np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    x, y, z = np.ascontiguousarray(coords.T)  # (N,) each: reductions over (N,3) columns are slow
+    lo = np.array([x.min(), y.min(), z.min()])
+    dims = np.array([x.max(), y.max(), z.max()]) - lo + 1  # (3,)
+    if int(np.prod(dims)) > max_bins:
+        keys, inverse, counts = np.unique(encode(coords), return_inverse=True, return_counts=True)
+        return OccupiedCells(decode(keys), inverse.reshape(-1), counts)
+    linear = ((x - lo[0]) * dims[1] + (y - lo[1])) * dims[2] + (z - lo[2])  # (N,)
+    bins = np.bincount(linear, minlength=int(np.prod(dims)))
+    occupied = np.flatnonzero(bins)  # (M,) sorted linear cells
+    rank = np.zeros(bins.size, np.int32)
+    rank[occupied] = np.arange(occupied.size)
+    cells = np.stack(np.unravel_index(occupied, tuple(int(d) for d in dims)), 1) + lo  # (M,3)
+    return OccupiedCells(cells.astype(np.int64), rank[linear], bins[occupied])
+
+
 class KeyIndex:
     """Growing set of int64 keys -> dense ids, with vectorised lookup in numpy and torch."""
 
@@ -120,32 +149,32 @@ class VoxelOctree:
 
     def level_coords(self, level: int) -> np.ndarray:
         """(V',3) coordinates of occupied cells `level` octree levels above the leaves (cell = vs * 2**level)."""
-        return (
-            np.unique(self.voxel_coords() >> level, axis=0) if self.n_voxels else np.zeros((0, 3), np.int64)
-        )
+        return np.unique(self.voxel_coords() >> level, axis=0) if self.n_voxels else np.zeros((0, 3), np.int64)
 
-    def candidate_voxels(self, points_world: np.ndarray) -> np.ndarray:
-        """Keys of voxels holding > min_points points (N,3), plus expanded neighbours."""
-        coords = np.floor(points_world / self.voxel_size_m).astype(np.int64)  # (N,3)
-        keys, inverse, counts = np.unique(encode(coords), return_inverse=True, return_counts=True)
-        keep = counts > self.min_points
-        chosen = [keys[keep]]
+    def candidate_voxels(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Keys of voxels holding > min_points of the points (N,3) plus expanded neighbours, and the keys of
+        every voxel holding any point."""
+        cells = occupied_cells(np.floor(points_world / self.voxel_size_m).astype(np.int64))  # (N,3)
+        keep = cells.counts > self.min_points
+        base = cells.coords[keep]  # (n,3)
+        chosen = [encode(base)]
         if self.expansion and keep.any():
-            sums = np.zeros((keys.size, 3))
-            np.add.at(sums, inverse, points_world / self.voxel_size_m)
-            local = sums[keep] / counts[keep, None] - decode(keys[keep])  # (n,3) mean in [0,1)
-            base = decode(keys[keep])
+            scaled = points_world / self.voxel_size_m  # (N,3) in voxels
+            sums = np.stack(
+                [np.bincount(cells.inverse, scaled[:, a], minlength=cells.counts.size) for a in range(3)], 1
+            )
+            local = sums[keep] / cells.counts[keep, None] - base  # (n,3) mean point in [0,1)^3
             for axis in range(3):
                 for side, hit in ((-1, local[:, axis] < 0.1), (1, local[:, axis] > 0.9)):
                     nb = base[hit].copy()
                     nb[:, axis] += side
                     chosen.append(encode(nb))
-        return np.unique(np.concatenate(chosen))
+        return np.unique(np.concatenate(chosen)), encode(cells.coords)
 
     def allocate(self, points_world: np.ndarray) -> Allocation:
         """Allocate voxels for one frame's back-projected points (N,3); corners are created with them."""
         n_before = self.n_voxels
-        keys = self.candidate_voxels(points_world)
+        keys, hit_keys = self.candidate_voxels(points_world)
         self.voxels.add(keys)
         new_ids = np.arange(n_before, self.n_voxels, dtype=np.int64)
         if new_ids.size:
@@ -153,9 +182,7 @@ class VoxelOctree:
             corner_keys = encode(coords[:, None, :] + CORNER_OFFSETS[None])  # (n,8)
             cids = self.corners.add(corner_keys.reshape(-1)).reshape(-1, 8)
             self.voxel_corners = np.concatenate([self.voxel_corners, cids])
-        observed = self.voxels.lookup(
-            np.unique(encode(np.floor(points_world / self.voxel_size_m).astype(np.int64)))
-        )
+        observed = self.voxels.lookup(hit_keys)
         return Allocation(new_voxels=new_ids, observed=observed[observed >= 0])
 
     def lookup_points(self, points: torch.Tensor) -> torch.Tensor:

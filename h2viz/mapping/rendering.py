@@ -36,17 +36,18 @@ def first_crossing(t: torch.Tensor, sdf: torch.Tensor, ray: torch.Tensor, n_rays
     return out.scatter_reduce(0, ray, t_neg, reduce="amin")
 
 
-def render_weights(
-    samples: Samples, sdf: torch.Tensor, truncation_m: float, temperature: float
-) -> torch.Tensor:
+def render_weights(samples: Samples, sdf: torch.Tensor, truncation_m: float, temperature: float) -> torch.Tensor:
     """Unnormalised weights (S,) with samples beyond the first surface + tr removed."""
     w = torch.sigmoid(sdf / temperature) * torch.sigmoid(-sdf / temperature)
     t_cross = first_crossing(samples.t.detach(), sdf.detach(), samples.ray, samples.n_rays)
     return w * (samples.t <= t_cross[samples.ray] + truncation_m).to(w.dtype)
 
 
-def composite(samples: Samples, weights: torch.Tensor, rgb: torch.Tensor | None) -> RayRender:
-    """Normalised weighted sums of t and colour per ray."""
+def composite(
+    samples: Samples, weights: torch.Tensor, rgb: torch.Tensor | None, rgb_index: torch.Tensor | None = None
+) -> RayRender:
+    """Normalised weighted sums of t and colour per ray. rgb is (S,3), or (S',3) for the samples rgb_index (S',)
+    when colour was evaluated only where the weights are not negligible."""
     R = samples.n_rays
     wsum = segment_sum(weights, samples.ray, R)  # (R,)
     hit = wsum > 1e-8
@@ -54,6 +55,17 @@ def composite(samples: Samples, weights: torch.Tensor, rgb: torch.Tensor | None)
     depth = segment_sum(weights * samples.t, samples.ray, R) / norm
     if rgb is None:
         color = torch.zeros(R, 3, device=weights.device)
-    else:
+    elif rgb_index is None:
         color = segment_sum(weights[:, None] * rgb, samples.ray, R) / norm[:, None]
+    else:
+        color = segment_sum(weights[rgb_index, None] * rgb, samples.ray[rgb_index], R) / norm[:, None]
     return RayRender(depth=depth * hit, rgb=color, weight_sum=wsum, hit=hit)
+
+
+LIVE_WEIGHT = 1e-4
+"""Raw weights below this (peak 0.25) add < 0.1 % to a ray's colour: the colour network skips such samples."""
+
+
+def live_samples(weights: torch.Tensor) -> torch.Tensor:
+    """Indices (S',) of samples whose weight (S,) is large enough to colour the render."""
+    return torch.nonzero(weights.detach() > LIVE_WEIGHT)[:, 0]

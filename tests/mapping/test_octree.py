@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
-from h2viz.mapping.octree import CORNER_OFFSETS, KeyIndex, VoxelOctree, decode, encode
+from h2viz.mapping.octree import CORNER_OFFSETS, KeyIndex, VoxelOctree, decode, encode, occupied_cells
 
 
 def cloud_in_voxel(
@@ -78,12 +79,29 @@ def test_allocation_is_incremental_and_observed_lists_seen_voxels() -> None:
 
 def test_lookup_points_and_levels() -> None:
     tree = VoxelOctree(0.1, min_points=0, expansion=False)
-    tree.allocate(
-        np.concatenate([cloud_in_voxel(c, 3) for c in [(0, 0, 0), (1, 1, 1), (-1, 0, 0), (5, 0, 0)]])
-    )
+    tree.allocate(np.concatenate([cloud_in_voxel(c, 3) for c in [(0, 0, 0), (1, 1, 1), (-1, 0, 0), (5, 0, 0)]]))
     ids = tree.lookup_points(torch.tensor([[0.05, 0.05, 0.05], [-0.05, 0.05, 0.05], [0.25, 0.0, 0.0]]))
     coords = tree.voxel_coords()
     assert coords[ids[0]].tolist() == [0, 0, 0] and coords[ids[1]].tolist() == [-1, 0, 0] and ids[2] == -1
     lvl1 = {tuple(c) for c in tree.level_coords(1).tolist()}
     assert lvl1 == {(0, 0, 0), (-1, 0, 0), (2, 0, 0)}
     assert {tuple(c) for c in tree.level_coords(3).tolist()} == {(0, 0, 0), (-1, 0, 0)}
+
+
+@pytest.mark.parametrize("far_point", [False, True])  # dense local grid / sorting fallback for a huge box
+def test_occupied_cells_match_numpy_unique(far_point: bool) -> None:
+    rng = np.random.default_rng(3)
+    coords = (rng.normal(size=(5000, 3)) * 6).astype(np.int64) - 40
+    if far_point:
+        coords = np.concatenate([coords, [[-(1 << 19), 7, 1 << 19]]])
+    cells = occupied_cells(coords)
+    keys, inverse, counts = np.unique(encode(coords), return_inverse=True, return_counts=True)
+    np.testing.assert_array_equal(encode(cells.coords), keys)
+    np.testing.assert_array_equal(cells.inverse, inverse)
+    np.testing.assert_array_equal(cells.counts, counts)
+    np.testing.assert_array_equal(cells.coords[cells.inverse], coords)
+
+
+def test_occupied_cells_of_nothing() -> None:
+    cells = occupied_cells(np.zeros((0, 3), np.int64))
+    assert cells.coords.shape == (0, 3) and cells.inverse.size == 0 and cells.counts.size == 0
