@@ -1,8 +1,12 @@
 """Octree SDF priors: corner SDF values initialised by projecting voxel corners into the depth image.
 
-A voxel is initialised when all 8 corners project inside the image onto valid depth and
-|D(u) - z| <= sqrt(6) * voxel size; each corner is written once; voxels that fail are retried later.
-Values are stored in truncation units (sdf / tr) so that one learning rate suits priors and networks.
+A corner is written, once, by the first frame in which it projects inside the image onto valid depth with
+|D(u) - z| <= sqrt(6) * voxel size; a voxel is initialised when all 8 of its corners are written, by one frame
+or several (a voxel at the edge of one view is completed by the next), and waits until then. A corner seen
+more than that limit in front of the measured surface (through a silhouette, onto the background) is in
+observed free space: it keeps the free-space value until a later view writes it, and counts as known, so that
+its voxel is meshed. Values are stored in truncation units (sdf / tr) so that one learning rate suits priors
+and networks.
 """
 
 from __future__ import annotations
@@ -20,13 +24,18 @@ class PriorInitializer:
         self.truncation_m = float(truncation_m)
         self.enabled = enabled
         self.written = np.zeros(0, dtype=bool)  # (C,) corner already holds a prior
-        self.pending = np.zeros(0, dtype=np.int64)  # voxel ids still to initialise
+        self.free = np.zeros(0, dtype=bool)  # (C,) corner seen in free space beyond the sqrt(6) limit
+        self.pending = np.zeros(0, dtype=np.int64)  # (P,) voxel ids with corners still to write
+        self.ready = np.zeros(0, dtype=bool)  # (P,) pending voxel whose corners are all written or free
 
     def grow(self, n_corners: int, new_voxels: np.ndarray) -> None:
         """Account for corners and voxels created by the last allocation."""
-        self.written = np.concatenate([self.written, np.zeros(n_corners - self.written.size, dtype=bool)])
+        grown = np.zeros(n_corners - self.written.size, dtype=bool)
+        self.written = np.concatenate([self.written, grown])
+        self.free = np.concatenate([self.free, grown])
         if self.enabled and new_voxels.size:
             self.pending = np.concatenate([self.pending, new_voxels])
+            self.ready = np.concatenate([self.ready, np.zeros(new_voxels.size, dtype=bool)])
 
     def initialize(
         self, octree: VoxelOctree, depth_m: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray
@@ -45,26 +54,31 @@ class PriorInitializer:
         d = np.zeros_like(z)
         d[inside] = depth_m[v[inside], u[inside]]
         sdf = d - z  # (P*8,)
-        ok_corner = inside & (d > 0) & (np.abs(sdf) <= np.sqrt(6.0) * vs)
-        ok_voxel = ok_corner.reshape(-1, 8).all(axis=1)  # (P,)
-        cids = octree.voxel_corners[self.pending[ok_voxel]].reshape(-1)
-        vals = sdf.reshape(-1, 8)[ok_voxel].reshape(-1) / self.truncation_m
-        cids, first = np.unique(cids, return_index=True)
-        vals = vals[first]
-        fresh = ~self.written[cids]
+        corner_ids = octree.voxel_corners[self.pending].reshape(-1)  # (P*8,)
+        limit = np.sqrt(6.0) * vs
+        take = inside & (d > 0) & (np.abs(sdf) <= limit) & ~self.written[corner_ids]
+        cids, first = np.unique(corner_ids[take], return_index=True)  # a shared corner once
+        vals = sdf[take][first] / self.truncation_m
         self.written[cids] = True
-        self.pending = self.pending[~ok_voxel]
-        return cids[fresh], vals[fresh].astype(np.float32)
+        self.free[corner_ids[inside & (d > 0) & (sdf > limit)]] = True
+        corners = octree.voxel_corners[self.pending]  # (P,8)
+        done = self.written[corners].all(axis=1)  # (P,)
+        self.ready = (self.written | self.free)[corners[~done]].all(axis=1)
+        self.pending = self.pending[~done]
+        return cids, vals.astype(np.float32)
 
     def initialised(self, n_voxels: int) -> np.ndarray:
-        """(V,) True for voxels whose corners all hold priors (every voxel when priors are disabled)."""
+        """(V,) True for voxels whose corners all hold priors or lie in observed free space (every voxel when
+        priors are disabled)."""
         mask = np.ones(n_voxels, dtype=bool)
-        mask[self.pending] = False
+        mask[self.pending[~self.ready]] = False
         return mask
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        return {"written": self.written, "pending": self.pending}
+        return {"written": self.written, "free": self.free, "pending": self.pending, "ready": self.ready}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self.written = np.asarray(state["written"], dtype=bool)
         self.pending = np.asarray(state["pending"], dtype=np.int64)
+        self.free = np.asarray(state.get("free", np.zeros_like(self.written)), dtype=bool)
+        self.ready = np.asarray(state.get("ready", np.zeros(self.pending.size, bool)), dtype=bool)

@@ -70,3 +70,36 @@ def test_disabled_priors_write_nothing() -> None:
     init = PriorInitializer(0.05, enabled=False)
     init.grow(tree.n_corners, alloc.new_voxels)
     assert init.initialize(tree, depth, K, T)[0].size == 0
+
+
+def test_a_voxel_at_the_edge_of_one_view_is_completed_by_the_next() -> None:
+    T_left = look_at(np.array([-0.4, 0.0, 1.0]), np.array([-0.4, 0.0, 0.0]), up=np.array([0.0, 1.0, 0.0]))
+    T_right = look_at(np.array([0.4, 0.0, 1.0]), np.array([0.4, 0.0, 0.0]), up=np.array([0.0, 1.0, 0.0]))
+    tree = VoxelOctree(0.1, min_points=0, expansion=False)
+    alloc = tree.allocate(np.array([[0.25, 0.05, 0.02]]))  # voxel x in [0.2, 0.3]: the left view sees x < 0.4
+    init = PriorInitializer(0.05)
+    init.grow(tree.n_corners, alloc.new_voxels)
+    depth_left = plane_depth(T_left)
+    depth_left[:, 150:] = 0.0  # the left view's depth ends at x ~ 0.25: only the voxel's x = 0.2 corners
+    cids, vals = init.initialize(tree, depth_left, K, T_left)
+    assert cids.size == 4 and init.pending.size == 1  # four corners written, the voxel still waits
+    np.testing.assert_allclose(vals * 0.05, tree.corner_coords()[cids][:, 2] * 0.1, atol=1e-4)
+    cids2, _ = init.initialize(tree, plane_depth(T_right), K, T_right)
+    assert cids2.size == 4 and not set(cids2) & set(cids)  # the other four, never rewritten
+    assert init.pending.size == 0 and init.initialised(1).all()
+
+
+def test_corners_seen_through_a_silhouette_count_as_free_space() -> None:
+    T = look_at(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.0]), up=np.array([0.0, 1.0, 0.0]))
+    tree = VoxelOctree(0.1, min_points=0, expansion=False)
+    alloc = tree.allocate(np.array([[0.05, 0.05, 0.55]]))  # a voxel 0.5-0.6 m above the floor
+    init = PriorInitializer(0.05)
+    init.grow(tree.n_corners, alloc.new_voxels)
+    depth = plane_depth(T)  # the camera sees the floor through the voxel: every corner is >= 0.4 m in front
+    cids, _ = init.initialize(tree, depth, K, T)
+    assert cids.size == 0 and init.pending.size == 1  # nothing written, the voxel still waits for values
+    assert init.free[tree.voxel_corners[0]].all() and init.initialised(1).all()  # but it counts as known
+    depth_near = plane_depth(T, z_plane=0.5)  # a later view sees a surface right below the voxel
+    cids, vals = init.initialize(tree, depth_near, K, T)
+    assert cids.size == 8 and init.pending.size == 0
+    np.testing.assert_allclose(vals * 0.05, tree.corner_coords()[cids][:, 2] * 0.1 - 0.5, atol=1e-4)
