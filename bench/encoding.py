@@ -1,13 +1,19 @@
-"""Hash-grid encoding speed on CPU: forward and forward+backward for one batch of 4096 rays x 40 samples.
+"""Hash-grid encoding speed on CPU: forward and forward+backward of one grid (L=4 F=2 T=2^19) per batch size.
 
-Reproduce:  .venv/bin/python bench/encoding.py            (add --compile for the torch.compile row,
-                                                           --alternatives for the design comparisons)
-HashGrid(compile=True) uses the compiled row's forward for gradient-free calls and the eager row otherwise.
+Reproduce:  .venv/bin/python bench/encoding.py            (--compile adds the torch.compile row,
+                                                           --alternatives the reference and design comparisons)
+Rows: "numba fused" is what HashGrid(kernels="auto") runs on the CPU; "numba kernels only" times the same
+forward and table-gradient kernels without autograd and with a reused gradient buffer (the difference is
+allocating and page-faulting the dense (L,T,F) gradient, plus autograd); "torch eager" is kernels="torch"
+(and the path for CUDA and for gradients w.r.t. points); HashGrid(compile=True) uses the compiled row's
+forward for gradient-free calls that the fused kernels do not serve.
 
-Points are 1 cm samples around the surface hit by 4096 camera rays in a room, so corners repeat the way
-they do during mapping. Times are the best of --reps interleaved runs with torch.set_num_threads(2)
-(--threads), as wall time and as process CPU time; the 1-minute load average is printed because other
-jobs on the machine inflate wall times (with --threads 1 the CPU column is the load-independent figure).
+Points are 1 cm samples (40 per ray, sorted along each ray) around the surface hit by camera rays in a
+room, so corners repeat the way they do during mapping; --points sets the batch sizes. Wall times are the
+median and the best of --reps interleaved runs with torch.set_num_threads(2) (--threads); the CPU column is
+the median process CPU time. The 1-minute load average is printed because other jobs on the machine
+inflate wall times (with --threads 1 the CPU column is the load-independent figure). "1st s" is the first
+call: compilation, or loading compiled code from numba's cache.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from h2viz.mapping.encoding import (  # noqa: E402
     corners_and_weights,
     encode,
     encode_for_compile,
+    fused_kernels,
     gather_blend,
     hash_grid_reference,
     level_cell_sizes,
@@ -134,12 +141,32 @@ def time_pair(fn: EncodeFn, grid: HashGrid, x: Tensor, upstream: Tensor) -> Timi
     return w1 - w0, w2 - w1, c1 - c0, c2 - c1
 
 
+def time_kernels_only(grid: HashGrid, x: Tensor, upstream: Tensor, grad_buffer: Tensor) -> Timing:
+    """The fused forward and table-gradient kernels alone: no autograd, the gradient buffer is reused."""
+    fused = fused_kernels()
+    assert fused is not None
+    x64 = x.double()
+    w0, c0 = time.perf_counter(), time.process_time()
+    fused.forward_features(x64, grid.tables, grid.cell_sizes_m)
+    w1, c1 = time.perf_counter(), time.process_time()
+    fused.forward_features(x64, grid.tables, grid.cell_sizes_m)
+    fused.table_gradient(x64, upstream, grid.cell_sizes_m, grid.tables.shape, out=grad_buffer)
+    w2, c2 = time.perf_counter(), time.process_time()
+    return w1 - w0, w2 - w1, c1 - c0, c2 - c1
+
+
 def variants(compiled: bool, alternatives: bool) -> dict[str, EncodeFn]:
-    """The rows of the table: the module, the reference and optionally compile and design alternatives."""
-    rows: dict[str, EncodeFn] = {"HashGrid (eager)": encode, "reference": reference}
+    """The rows of the table: the fused kernels, the torch module path, optionally compile and alternatives."""
+    rows: dict[str, EncodeFn] = {}
+    fused = fused_kernels()
+    if fused is not None:
+        rows["numba fused"] = fused.fused_encode
+        rows["numba kernels only"] = fused.fused_encode  # timed by time_kernels_only
+    rows["torch eager"] = encode
     if compiled:
         rows["compiled encode_for_compile"] = torch.compile(encode_for_compile, dynamic=True)
     if alternatives:
+        rows["reference"] = reference
         for kind in ("index_select", "gather", "embedding", "embedding_sparse", "indexing"):
             rows[f"autograd {kind}"] = gather_variant(kind)
         rows |= {"8 multiply-adds (eager)": encode_for_compile, "points-first + bmm": corner_last_bmm}
@@ -147,45 +174,64 @@ def variants(compiled: bool, alternatives: bool) -> dict[str, EncodeFn]:
     return rows
 
 
-def measure(rows: dict[str, EncodeFn], reps: int) -> tuple[dict[str, Timing], dict[str, float]]:
-    """Best-of-`reps` timings per row (interleaved, so load changes hit every row alike) and first-call s."""
+def measure(rows: dict[str, EncodeFn], x: Tensor, reps: int) -> tuple[dict[str, list[Timing]], dict[str, float]]:
+    """Per row: `reps` timings (interleaved, so load changes hit every row alike) and the first call in s."""
     torch.manual_seed(0)
     grid = HashGrid()
-    x = ray_samples()  # (N,3)
     upstream = torch.randn(x.shape[0], grid.output_dim)
     expected = encode(x, grid.tables, grid.cell_sizes_m).detach()
+    grad_buffer = torch.empty_like(grid.tables)  # (L,T,F)
+
+    def timed(name: str) -> Timing:
+        if name == "numba kernels only":
+            return time_kernels_only(grid, x, upstream, grad_buffer)
+        return time_pair(rows[name], grid, x, upstream)
+
     first: dict[str, float] = {}
-    for name, fn in rows.items():  # allocation warm-up; compilation for torch.compile
+    for name, fn in rows.items():  # allocation warm-up; compilation (numba, torch.compile)
         t0 = time.perf_counter()
-        time_pair(fn, grid, x, upstream)
+        timed(name)
         first[name] = time.perf_counter() - t0
-        torch.testing.assert_close(fn(x, grid.tables, grid.cell_sizes_m), expected, msg=f"{name} differs")
-    best: dict[str, Timing] = {name: (float("inf"),) * 4 for name in rows}
+        got = fn(x, grid.tables, grid.cell_sizes_m)
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-7, msg=f"{name} differs")
+    runs: dict[str, list[Timing]] = {name: [] for name in rows}
     for _ in range(reps):
-        for name, fn in rows.items():
-            now = time_pair(fn, grid, x, upstream)
-            best[name] = tuple(min(a, b) for a, b in zip(best[name], now, strict=True))  # type: ignore[assignment]
-    return best, first
+        for name in rows:
+            runs[name].append(timed(name))
+    return runs, first
+
+
+def print_table(runs: dict[str, list[Timing]], first: dict[str, float], n_points: int) -> None:
+    """One line per row: median and best wall ms of forward and fwd+bwd, median CPU ms, first call s."""
+    for name, timings in runs.items():
+        by_column = [sorted(column) for column in zip(*timings, strict=True)]
+        fwd, both, _, both_cpu = (column[len(column) // 2] * 1e3 for column in by_column)
+        best_fwd, best_both = by_column[0][0] * 1e3, by_column[1][0] * 1e3
+        ms = f"{fwd:8.1f} {best_fwd:8.1f} {both:10.1f} {best_both:10.1f} {both_cpu:10.1f}"
+        print(f"{n_points:7d} {name:28s} {ms} {first[name]:6.2f}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--reps", type=int, default=5, help="timed runs per row (best is kept)")
-    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument("--reps", type=int, default=9, help="timed runs per row and size")
+    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (numba follows)")
+    parser.add_argument("--points", default="20480,65536,163840", help="batch sizes, comma separated")
     parser.add_argument("--compile", action="store_true", help="add the torch.compile row")
-    parser.add_argument("--alternatives", action="store_true", help="add gather/blend/loop design rows")
+    parser.add_argument("--alternatives", action="store_true", help="add the reference and design rows")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    best, first = measure(variants(args.compile, args.alternatives), args.reps)
+    rows = variants(args.compile, args.alternatives)
     cells = ", ".join(f"{c * 100:g}" for c in level_cell_sizes())
-    print(f"N = {4096 * 40} points (4096 rays x 40 samples), L=4 F=2 T=2^19, cells {cells} cm")
-    load = os.getloadavg()[0]
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average {load:.2f}")
-    heads = ("fwd ms", "fwd+bwd ms", "fwd CPU ms", "f+b CPU ms")
-    print(f"{'variant':26s} {heads[0]:>8s} {' '.join(f'{h:>11s}' for h in heads[1:])} {'1st s':>6s}")
-    for name, (fwd, both, fwd_cpu, both_cpu) in best.items():
-        ms = f"{fwd * 1e3:8.1f} {both * 1e3:11.1f} {fwd_cpu * 1e3:11.1f} {both_cpu * 1e3:11.1f}"
-        print(f"{name:26s} {ms} {first[name]:6.1f}")
+    print(f"points: 40 per ray, 1 cm apart; L=4 F=2 T=2^19, cells {cells} cm")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    heads = f"{'fwd ms':>8s} {'best':>8s} {'fwd+bwd ms':>10s} {'best':>10s} {'f+b CPU ms':>10s} {'1st s':>6s}"
+    print(f"{'N':>7s} {'variant':28s} {heads}")
+    for n_points in (int(n) for n in args.points.split(",")):
+        x = ray_samples(n_rays=max(1, n_points // 40))  # (N,3)
+        runs, first = measure(rows, x, args.reps)
+        print_table(runs, first, x.shape[0])
+    print(f"load average {os.getloadavg()[0]:.2f}; median and best of {args.reps} runs per row")
+    print(f"command: .venv/bin/python bench/encoding.py {' '.join(sys.argv[1:])}".rstrip())
 
 
 if __name__ == "__main__":

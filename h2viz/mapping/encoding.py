@@ -6,12 +6,17 @@ coarse to fine. A corner with integer lattice coordinates (i, j, k) lives at ent
 `(i * 1 ^ j * 2654435761 ^ k * 805459861) mod T` of its level's table (int64 arithmetic, correct for
 negative coordinates), so no scene bounds are needed. Corners are ordered `4 * dx + 2 * dy + dz`.
 Valid inputs: finite metres with |x| / finest cell < 2**31 (about 27 000 km at the default sizes).
+
+On the CPU, HashGrid runs the fused numba kernels of `h2viz.mapping.hash_numba` when numba imports
+(kernels="auto"); the torch functions here are the reference, serve CUDA and the gradient w.r.t. points.
 """
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Callable
+from types import ModuleType
 from typing import Any
 
 import torch
@@ -22,6 +27,18 @@ from h2viz.errors import ConfigError, H2vizError
 
 HASH_PRIMES: tuple[int, int, int] = (1, 2654435761, 805459861)
 """Per-axis multipliers of the spatial hash (x, y, z)."""
+KERNEL_CHOICES: tuple[str, ...] = ("auto", "torch")
+"""auto: fused numba kernels on the CPU when numba imports, else torch; torch: always the torch path."""
+
+
+@functools.cache
+def fused_kernels() -> ModuleType | None:
+    """The fused CPU kernels module, or None when numba cannot be imported (imported on first use)."""
+    try:
+        from h2viz.mapping import hash_numba
+    except ImportError:
+        return None
+    return hash_numba
 
 
 def level_cell_sizes(n_levels: int = 4, base_cell_m: float = 0.1, scale: float = 2.0) -> list[float]:
@@ -141,9 +158,10 @@ def encode_for_compile(x: Tensor, tables: Tensor, cell_sizes_m: list[float]) -> 
 class HashGrid(nn.Module):
     """Trainable multiresolution hash encoding: points (N,3) in metres -> features (N, L*F).
 
-    compile=True runs gradient-free calls (meshing, rendering) through torch.compile, ~2.5x faster on
-    CPU after a first call that compiles for several seconds (needs a C++ compiler); calls that need
-    gradients always use the eager path, whose hand-written backward is faster than the compiled one.
+    kernels="auto" runs CPU calls through the fused numba kernels (forward, and the table gradient)
+    unless x needs a gradient (normals), which the torch path provides; kernels="torch" never uses them.
+    compile=True runs gradient-free calls that the fused kernels do not serve (CUDA, kernels="torch")
+    through torch.compile (needs a C++ compiler; compiles for several seconds on the first call).
     """
 
     def __init__(
@@ -155,9 +173,11 @@ class HashGrid(nn.Module):
         scale: float = 2.0,
         init_std: float = 1e-4,
         compile: bool = False,
+        kernels: str = "auto",
     ) -> None:
         super().__init__()
-        _check_args(n_levels, n_features, log2_size, base_cell_m, scale)
+        _check_args(n_levels, n_features, log2_size, base_cell_m, scale, kernels)
+        self.kernels = kernels
         self.n_levels = n_levels
         self.n_features = n_features
         self.log2_size = log2_size
@@ -181,9 +201,11 @@ class HashGrid(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """Features (N, L*F) of world points x (N,3) in metres, levels coarse to fine."""
         if x.ndim != 2 or x.shape[1] != 3:
-            raise H2vizError(
-                f"HashGrid expects points shaped (N,3), got {tuple(x.shape)}; reshape to (-1, 3)."
-            )
+            raise H2vizError(f"HashGrid expects points shaped (N,3), got {tuple(x.shape)}; reshape to (-1, 3).")
+        x_needs_grad = torch.is_grad_enabled() and x.requires_grad
+        fused = fused_kernels() if self.kernels == "auto" and not x_needs_grad else None
+        if fused is not None and x.device.type == "cpu" and self.tables.device.type == "cpu":
+            return fused.fused_encode(x, self.tables, self.cell_sizes_m)
         if torch.is_grad_enabled() and (self.tables.requires_grad or x.requires_grad):
             return encode(x, self.tables, self.cell_sizes_m)  # hand-written backward beats compiled
         return self._encode_no_grad(x, self.tables, self.cell_sizes_m)
@@ -194,21 +216,19 @@ class HashGrid(nn.Module):
         return (rows & (self.table_size - 1)).permute(2, 1, 0).long()
 
 
-def _check_args(n_levels: int, n_features: int, log2_size: int, base_cell_m: float, scale: float) -> None:
-    """Raise ConfigError for hash-grid sizes that cannot work."""
+def _check_args(n_levels: int, n_features: int, log2_size: int, base_cell_m: float, scale: float, kernels: str) -> None:
+    """Raise ConfigError for hash-grid settings that cannot work."""
+    if kernels not in KERNEL_CHOICES:
+        raise ConfigError(f"mapping.kernels: unknown {kernels!r}; use one of {KERNEL_CHOICES}")
     if n_levels < 1 or n_features < 1:
-        raise ConfigError(
-            f"hash grid: hash_levels ({n_levels}) and hash_features ({n_features}) must be >= 1."
-        )
+        raise ConfigError(f"hash grid: hash_levels ({n_levels}) and hash_features ({n_features}) must be >= 1.")
     if log2_size < 1 or n_levels << log2_size >= 1 << 31:
         raise ConfigError(
             f"hash grid: need hash_log2_size >= 1 and hash_levels * 2**hash_log2_size < 2**31, "
             f"got {log2_size} and {n_levels}."
         )
     if not base_cell_m > 0 or not scale >= 1:
-        raise ConfigError(
-            f"hash grid: the base cell size ({base_cell_m} m) must be > 0 and hash_scale ({scale}) >= 1."
-        )
+        raise ConfigError(f"hash grid: the base cell size ({base_cell_m} m) must be > 0 and hash_scale ({scale}) >= 1.")
 
 
 def hash_grid_reference(x: Tensor, tables: Tensor, base_cell_m: float, scale: float) -> Tensor:

@@ -32,8 +32,8 @@ class HybridField(nn.Module):
         super().__init__()
         base = cfg.hash_base_resolution_m or cfg.voxel_size_m
         grid = dict(n_levels=cfg.hash_levels, n_features=cfg.hash_features, log2_size=cfg.hash_log2_size)
-        self.geo_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale)
-        self.color_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale)
+        self.geo_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale, kernels=cfg.kernels)
+        self.color_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale, kernels=cfg.kernels)
         self.geo_mlp = mlp(self.geo_grid.output_dim, cfg.geo_hidden, cfg.geo_layers, 1)
         self.color_mlp = mlp(self.color_grid.output_dim, cfg.color_hidden, cfg.color_layers, 3)
         with torch.no_grad():  # the residual starts near zero so the priors rule at first
