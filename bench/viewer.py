@@ -1,16 +1,24 @@
-"""Benchmark of the live dashboard: mapping speed with 0, 1 and 3 connected browsers, latency from a
-frame being mapped to its mesh change arriving in a browser, bytes per mesh update, and novel-view
-render time per resolution. Browsers are Debian's headless chromium driven by Playwright.
+"""Benchmark of the live dashboard: mapping speed with 0, 1 and 3 connected browsers, latency from a frame
+being mapped to its mesh change arriving in a browser, bytes per mesh update, and novel-view render time
+per resolution. Browsers are Debian's headless chromium driven by Playwright, on the same machine.
 
     .venv/bin/python bench/viewer.py                      # synthetic scene, configs/fast.yaml, 20 frames
     .venv/bin/python bench/viewer.py --frames 40 mapping.max_iters=10
+
+Latency of frame i: from the end of its mapping to the browser receiving (first) the first pass and (all)
+every chunk of the first mesh job that includes frame i (the chunks its voxels were allocated in or
+observed, plus chunks whose voxel set changed). Mapping speed counts frames over the time from the start
+to the last frame mapped (final meshing and metrics excluded).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
 import statistics
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from h2viz.config import Config, load_config, source_config_file  # noqa: E402
-from h2viz.sources.base import make_source  # noqa: E402
+from h2viz.sources.base import FrameSource, make_source  # noqa: E402
+from h2viz.types import RgbdFrame  # noqa: E402
 from h2viz.viewer.server import Dashboard  # noqa: E402
 from h2viz.viewer.shapes import view_intrinsics  # noqa: E402
 from h2viz.viewer.wire import decode_frame  # noqa: E402
@@ -33,9 +42,11 @@ CHROMIUM_ARGS = [
     "--disable-gpu",
     "--disable-background-networking",
     "--disable-component-update",
+    "--no-first-run",
+    "--disable-sync",
 ]
-CHROMIUM_ARGS += ["--no-first-run", "--disable-sync"]
 RESOLUTIONS = [(80, 60), (160, 120), (320, 240), (640, 480)]
+Key = tuple[int, int, int]
 
 
 @dataclass
@@ -44,149 +55,210 @@ class Run:
 
     browsers: int
     frames: int = 0
-    wall_s: float = 0.0
-    map_s: list[float] = field(default_factory=list)
-    latencies_s: list[float] = field(default_factory=list)
-    extract_s: list[float] = field(default_factory=list)  # frame mapped -> its mesh extracted
-    remesh_s: list[float] = field(default_factory=list)  # duration of each mesh extraction
-    send_delay_s: list[float] = field(default_factory=list)  # mesh extracted -> dashboard sends it
-    transfer_s: list[float] = field(default_factory=list)  # dashboard sends -> browser has all of it
-    update_bytes: list[int] = field(default_factory=list)
+    mapping_s: float = 0.0  # start -> last frame mapped
+    map_s: list[float] = field(default_factory=list)  # Mapper.integrate per frame
+    first_s: list[float] = field(default_factory=list)  # frame mapped -> first pass of its job in the browser
+    all_s: list[float] = field(default_factory=list)  # frame mapped -> all its job's required chunks there
+    job_s: list[float] = field(default_factory=list)  # job submitted -> its required passes done
+    job_chunks: list[int] = field(default_factory=list)  # required chunks per job
+    refreshed: int = 0  # chunks re-meshed by refresh passes
+    mesh_busy_share: float = 0.0  # mesh thread busy time / mapping time
+    update_bytes: list[int] = field(default_factory=list)  # GLB payload per mesh update received
     update_chunks: list[int] = field(default_factory=list)
     whole_mesh_bytes: int = 0
+    cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds while mapping, by thread / process
+    messages: dict[str, tuple[int, int]] = field(default_factory=dict)  # browser 0: type -> (count, bytes)
+    ws_frames: int = 0  # websocket frames browser 0 received
 
 
-def timed_mapper(cfg: Config) -> Any:
-    """The real Mapper, noting (map version, time) of every mesh update."""
+def cpu_seconds() -> dict[str, float]:
+    """CPU seconds so far of this process's threads (by name) and of its child processes (the browsers)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    names = {t.native_id: t.name for t in threading.enumerate() if t.name.startswith("h2viz-")}
+    out: dict[str, float] = {}
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        key = names.get(int(task.name), "other threads (torch, numba, viser, ...)")
+        out[key] = out.get(key, 0.0) + (int(fields[11]) + int(fields[12])) / tick
+    out["browser processes"] = sum(_tree_ticks(os.getpid())) / tick
+    return out
+
+
+def _tree_ticks(root: int) -> list[int]:
+    """utime + stime of every descendant process of `root`."""
+    children: dict[int, list[int]] = {}
+    ticks: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(entry.name))
+        ticks[int(entry.name)] = int(fields[11]) + int(fields[12]) + int(fields[13]) + int(fields[14])
+    out, todo = [], list(children.get(root, []))
+    while todo:
+        pid = todo.pop()
+        out.append(ticks.get(pid, 0))
+        todo += children.get(pid, [])
+    return out
+
+
+@dataclass
+class Wire:
+    """Mesh sends of the dashboard and GLB arrivals in page 0."""
+
+    sends: list[tuple[float, dict[Key, int]]] = field(default_factory=list)  # (time, {chunk: version})
+    arrivals: list[tuple[float, str, int]] = field(default_factory=list)  # (time, node name, bytes)
+    kinds: dict[str, list[int]] = field(default_factory=dict)  # message type -> [count, bytes]
+    frames: int = 0  # websocket frames received
+
+    def on_sent(self, snap: Any, keys: list[Key], nbytes: int) -> None:
+        if keys:
+            self.sends.append((time.time(), {k: snap.chunks[k].version for k in keys if k in snap.chunks}))
+
+    def on_frame(self, payload: Any) -> None:
+        now = time.time()
+        if isinstance(payload, bytes):
+            messages = decode_frame(payload)
+            self.frames += 1
+            for m in messages:
+                count = self.kinds.setdefault(m.type, [0, 0])
+                count[0], count[1] = count[0] + 1, count[1] + m.nbytes
+            self.arrivals.extend((now, m.name, m.nbytes) for m in messages if m.type == "GlbMessage" and m.name)
+
+    def arrival(self, key: Key, version: int) -> tuple[float, int] | None:
+        """(time, bytes) the browser first received chunk `key` at `version` (or a newer one)."""
+        sent = [t for t, chunks in self.sends if chunks.get(key, -1) >= version]
+        if not sent:
+            return None
+        name = node_name(key)
+        return next(((t, b) for t, n, b in self.arrivals if n == name and t >= sent[0] - 0.01), None)
+
+
+def node_name(key: Key) -> str:
+    return "/mesh/c_" + "_".join(str(int(k)).replace("-", "m") for k in key)
+
+
+class Preloaded(FrameSource):
+    """Frames read before the run, so that no run pays for loading (the synthetic scene ray-casts each one)."""
+
+    format_name = "preloaded"
+
+    def __init__(self, cfg: Config) -> None:
+        source = make_source(cfg.source)
+        super().__init__(dataclasses.replace(cfg.source, stride=1, max_frames=0, downscale=1))
+        self.frames, self.gt = list(source), source.ground_truth_mesh()
+
+    def keys(self) -> list[int]:
+        return list(range(len(self.frames)))
+
+    def load(self, position: int, key: Any) -> RgbdFrame:
+        return self.frames[int(key)]
+
+    def ground_truth_mesh(self) -> Any:
+        return self.gt
+
+
+def headless_run(cfg: Config) -> Run:
+    """Mapper.integrate over the same frames, without worker, meshing or dashboard (browsers = -1)."""
     from h2viz.mapping.mapper import Mapper
 
-    class TimedMapper(Mapper):
-        def __init__(self) -> None:
-            super().__init__(cfg.mapping)
-            self.meshed: list[tuple[int, float, float, int]] = []  # (version, start, end, frames integrated)
-            self.integrated = 0
-
-        def integrate(self, frame: Any) -> Any:
-            stats = super().integrate(frame)
-            self.integrated += 1
-            return stats
-
-        def update_mesh(self) -> None:
-            t0 = time.time()
-            super().update_mesh()
-            self.meshed.append((self.version, t0, time.time(), self.integrated))
-
-    return TimedMapper()
+    frames = Preloaded(cfg).frames
+    Mapper(cfg.mapping).integrate(frames[0])  # warm-up: compiled kernels load, thread pools start
+    run, mapper = Run(-1), Mapper(cfg.mapping)
+    t0, cpu0 = time.time(), cpu_seconds()
+    for frame in frames:
+        run.map_s.append(mapper.integrate(frame).map_time_s)
+    run.mapping_s, run.frames = time.time() - t0, len(run.map_s)
+    run.cpu_s = {k: v - cpu0.get(k, 0.0) for k, v in cpu_seconds().items()}
+    return run
 
 
-def mapping_run(cfg: Config, n_browsers: int, playwright: Any) -> tuple[Run, MappingWorker, Dashboard, Any]:
-    run = Run(n_browsers)
-    mapper = timed_mapper(cfg)
-    worker = MappingWorker(make_source(cfg.source), mapper, cfg)
+def mapping_run(
+    cfg: Config, n_browsers: int, playwright: Any, hide_mesh: bool = False
+) -> tuple[Run, MappingWorker, Dashboard, Any]:
+    from h2viz.mapping.mapper import Mapper
+
+    run, wire = Run(n_browsers), Wire()
+    source = Preloaded(cfg)
+    cfg = dataclasses.replace(cfg, source=source.cfg)  # every preloaded frame, in order
+    worker = MappingWorker(source, Mapper(cfg.mapping), cfg)
     dashboard = Dashboard(worker, cfg, port=0)
-    sends: list[tuple[float, int, list[str]]] = []  # (time, newest chunk version, node names)
-
-    def on_sent(snap: Any, keys: list[tuple[int, int, int]], nbytes: int) -> None:
-        if keys:
-            newest = max(snap.chunks[k].version for k in keys)
-            sends.append((time.time(), newest, [_name(k) for k in keys]))
-
-    dashboard.layers.mesh.on_sent.append(on_sent)
-    arrivals: list[tuple[float, str, int]] = []  # (time, node name, bytes) of GLB messages in page 0
-    browser = (
-        playwright.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
-        if n_browsers
-        else None
-    )
-    pages = (
-        [browser.new_page(viewport={"width": 800, "height": 600}) for _ in range(n_browsers)]
-        if browser
-        else []
-    )
-    if pages:
-        pages[0].on("websocket", lambda ws: ws.on("framereceived", lambda p: _record(p, arrivals)))
+    dashboard.layers.mesh.set_enabled(not hide_mesh)
+    dashboard.layers.mesh.on_sent.append(wire.on_sent)
+    browser = None
+    pages: list[Any] = []
+    if n_browsers:
+        browser = playwright.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+        pages = [browser.new_page(viewport={"width": 800, "height": 600}) for _ in range(n_browsers)]
+        pages[0].on("websocket", lambda ws: ws.on("framereceived", wire.on_frame))
     dashboard.start()
     for page in pages:
         page.goto(dashboard.url)
-    _wait_clients(dashboard, pages, n_browsers)
-    t0 = time.time()
+    deadline = time.time() + 120
+    while dashboard.client_count() < n_browsers and time.time() < deadline:
+        pages[0].wait_for_timeout(200)
+    t0, cpu0 = time.time(), cpu_seconds()
     worker.start()
+    while len(worker.mapped_at) < len(source.frames) and not worker.wait_finished(0.05):
+        if pages:
+            pages[0].wait_for_timeout(100)
+    cpu1 = cpu_seconds()
+    run.cpu_s = {k: v - cpu0.get(k, 0.0) for k, v in cpu1.items()}
     while not worker.wait_finished(0.05):
         if pages:
             pages[0].wait_for_timeout(100)
-    run.wall_s = time.time() - t0
     if pages:
         pages[0].wait_for_timeout(3000)  # let the last update arrive
     snap = worker.slot.get()[1]
     run.frames = snap.frames_done
     run.map_s = [s.map_time_s for s in snap.stats]
-    _latencies(run, worker, mapper, sends, arrivals)
-    run.whole_mesh_bytes = sum(len(_glb(c)) for c in snap.chunks.values())
+    run.mapping_s = max(worker.mapped_at.values()) - t0
+    _measure(run, worker, wire)
+    run.messages = {k: (c, b) for k, (c, b) in wire.kinds.items()}
+    run.ws_frames = wire.frames
+    from h2viz.viewer.glb import mesh_glb
+
+    run.whole_mesh_bytes = sum(len(mesh_glb(c.vertices, c.faces, c.colors)) for c in snap.chunks.values())
     return run, worker, dashboard, browser
 
 
-def _name(key: tuple[int, int, int]) -> str:
-    return "/mesh/c_" + "_".join(str(int(k)).replace("-", "m") for k in key)
-
-
-def _glb(chunk: Any) -> bytes:
-    from h2viz.viewer.glb import mesh_glb
-
-    return mesh_glb(chunk.vertices, chunk.faces, chunk.colors)
-
-
-def _record(payload: Any, arrivals: list[tuple[float, str, int]]) -> None:
-    now = time.time()
-    if isinstance(payload, bytes):
-        arrivals.extend(
-            (now, m.name, m.nbytes) for m in decode_frame(payload) if m.type == "GlbMessage" and m.name
-        )
-
-
-def _wait_clients(dashboard: Dashboard, pages: list[Any], n: int) -> None:
-    deadline = time.time() + 120
-    while dashboard.client_count() < n and time.time() < deadline:
-        pages[0].wait_for_timeout(200)
-
-
-def _first_arrivals(names: list[str], t_sent: float, arrivals: list) -> list[tuple[float, int]]:
-    """(time, bytes) of the first arrival of each node name at or after `t_sent` (none if one is missing)."""
-    first: dict[str, tuple[float, int]] = {}
-    for t, n, b in arrivals:  # in arrival order
-        if n in names and n not in first and t >= t_sent - 0.01:
-            first[n] = (t, b)
-    return list(first.values()) if len(first) == len(set(names)) else []
-
-
-def _latencies(run: Run, worker: MappingWorker, mapper: Any, sends: list, arrivals: list) -> None:
-    """Per frame: first browser arrival of a mesh update extracted after the frame was mapped."""
-    frame_times = sorted(worker.mapped_at.values())
-    received: list[tuple[float, int]] = []  # (arrival of the whole update, newest chunk version)
-    for t_sent, version, names in sends:
-        got = _first_arrivals(names, t_sent, arrivals)
-        if got:
-            received.append((max(t for t, _ in got), version))
-            run.update_bytes.append(sum(b for _, b in got))
-            run.update_chunks.append(len(names))
-    run.remesh_s = [t1 - t0 for _, t0, t1, _ in mapper.meshed]
-    extracted = {v: t1 for v, _, t1, _ in mapper.meshed}
-    run.send_delay_s = [t - extracted[v] for t, v, _ in sends if v in extracted]
-    run.transfer_s = [
-        max(t for t, _ in got) - t_sent
-        for t_sent, _, names in sends
-        if (got := _first_arrivals(names, t_sent, arrivals))
-    ]
-    for i, t_mapped in enumerate(frame_times):
-        meshes = [(v, t1) for v, _, t1, n in mapper.meshed if n >= i + 1]  # extractions including frame i
-        if not meshes:
+def _measure(run: Run, worker: MappingWorker, wire: Wire) -> None:
+    """Latencies per frame, job durations and bytes per update from the pass log and the wire."""
+    passes = list(worker.meshing.passes)
+    jobs: dict[int, list[Any]] = {}
+    for p in passes:
+        jobs.setdefault(p.job_version, []).append(p)
+    required = {v: [p for p in ps if p.required] for v, ps in jobs.items()}
+    for ps in required.values():
+        if ps:
+            run.job_s.append(ps[-1].finished - ps[0].submitted)
+            run.job_chunks.append(sum(len(p.chunks) for p in ps))
+    run.refreshed = sum(len(p.chunks) for p in passes if not p.required)
+    run.mesh_busy_share = worker.meshing.busy_s / max(run.mapping_s, 1e-9)
+    for n, t_mapped in enumerate(sorted(worker.mapped_at.values()), start=1):
+        version = next((v for v in sorted(required) if required[v] and required[v][0].field_version >= n), None)
+        if version is None:
             continue
-        run.extract_s.append(meshes[0][1] - t_mapped)
-        later = [t for t, v in received if v >= meshes[0][0]]
-        if later:
-            run.latencies_s.append(min(later) - t_mapped)
+        first = [wire.arrival(k, version) for k in required[version][0].chunks]
+        every = [wire.arrival(k, version) for p in required[version] for k in p.chunks]
+        if any(first):
+            run.first_s.append(min(a[0] for a in first if a) - t_mapped)
+        if every and all(every):
+            run.all_s.append(max(a[0] for a in every if a) - t_mapped)
+    for t_sent, chunks in wire.sends:
+        got = [a for k, v in chunks.items() if (a := wire.arrival(k, v)) is not None and a[0] >= t_sent - 0.01]
+        if got:
+            run.update_bytes.append(sum(b for _, b in got))
+            run.update_chunks.append(len(chunks))
 
 
-def render_times(worker: MappingWorker, dashboard: Dashboard) -> list[tuple[str, float, float]]:
+def render_times(worker: MappingWorker) -> list[tuple[str, float, float]]:
     """(resolution, rgb render s, background render s = rgb + half-resolution depth) at the last pose."""
     frame = worker.slot.get()[1].current_frame
     out = []
@@ -194,11 +266,7 @@ def render_times(worker: MappingWorker, dashboard: Dashboard) -> list[tuple[str,
         K = view_intrinsics(2 * np.arctan2(0.5 * frame.height, frame.K[1, 1]), width, height)
         args = {"K": K, "T_world_camera": frame.T_world_camera, "height": height, "width": width}
         rgb = worker.submit("render", mode="rgb", **args).result(600).seconds
-        both = (
-            worker.submit("render", mode="rgb", with_depth=True, depth_downscale=2, **args)
-            .result(600)
-            .seconds
-        )
+        both = worker.submit("render", mode="rgb", with_depth=True, depth_downscale=2, **args).result(600).seconds
         out.append((f"{width}x{height}", rgb, both))
     return out
 
@@ -211,39 +279,53 @@ def _median_max(values: list[float], scale: float = 1.0) -> str:
 
 def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], command: str) -> None:
     print(f"\nReproduce: {command}\n")
-    print("| browsers | frames | wall s | frames / s | mapper s / frame (median) |")
-    print("|---:|---:|---:|---:|---:|")
+    print("| browsers | frames | mapping s | frames / s | vs headless | mapper s / frame (median) |")
+    print("|---|---:|---:|---:|---:|---:|")
+    base = next((r.frames / r.mapping_s for r in runs if r.browsers < 0), None)
     for r in runs:
-        rate, median = r.frames / r.wall_s, statistics.median(r.map_s)
-        print(f"| {r.browsers} | {r.frames} | {r.wall_s:.1f} | {rate:.3f} | {median:.2f} |")
-    r = next((r for r in runs if r.browsers == 1), None)
-    if r is not None:
-        latency = f"frame mapped -> its mesh change in the browser, ms ({len(r.latencies_s)} frames)"
+        rate, median = r.frames / r.mapping_s, statistics.median(r.map_s)
+        rel = f"{100 * (rate / base - 1):+.0f} %" if base else "-"
+        label = "headless (no dashboard, no meshing)" if r.browsers < 0 else str(r.browsers)
+        print(f"| {label} | {r.frames} | {r.mapping_s:.1f} | {rate:.3f} | {rel} | {median:.2f} |")
+    for r in runs:
+        if r.browsers <= 0:
+            continue
         rows = [
-            (latency, _median_max(r.latencies_s, 1000)),
-            ("  of which: frame mapped -> its mesh extracted, ms", _median_max(r.extract_s, 1000)),
-            ("mesh extraction (update_mesh) duration, ms", _median_max(r.remesh_s, 1000)),
-            ("mesh extracted -> dashboard sends it, ms", _median_max(r.send_delay_s, 1000)),
-            ("dashboard sends -> browser received the whole update, ms", _median_max(r.transfer_s, 1000)),
-            ("mesh updates received", str(len(r.update_bytes))),
-            ("kB per mesh update", _median_max([float(b) for b in r.update_bytes], 1e-3)),
-            ("chunks per mesh update", _median_max([float(c) for c in r.update_chunks])),
-            ("whole final mesh as GLB chunks, kB", f"{r.whole_mesh_bytes / 1e3:.0f}"),
+            (f"frame mapped -> first mesh change in the browser, ms ({len(r.first_s)} frames)", r.first_s, 1000),
+            (f"frame mapped -> all of its chunks in the browser, ms ({len(r.all_s)} frames)", r.all_s, 1000),
+            ("mesh job submitted -> its required chunks extracted, ms", r.job_s, 1000),
+            ("required chunks per job", [float(c) for c in r.job_chunks], 1),
+            ("kB per mesh update received", [float(b) for b in r.update_bytes], 1e-3),
+            ("chunks per mesh update", [float(c) for c in r.update_chunks], 1),
         ]
-        print("\n| mesh streaming (1 browser) | median / max |\n|---|---:|")
-        for name, value in rows:
-            print(f"| {name} | {value} |")
+        print(f"\n| mesh streaming ({r.browsers} browser(s)) | median / max |\n|---|---:|")
+        for name, values, scale in rows:
+            print(f"| {name} | {_median_max(values, scale)} |")
+        print(f"| mesh updates received | {len(r.update_bytes)} |")
+        print(f"| chunks re-meshed by refresh passes | {r.refreshed} |")
+        print(f"| mesh thread busy / mapping time | {100 * r.mesh_busy_share:.0f} % |")
+        print(f"| whole final mesh as GLB chunks, kB | {r.whole_mesh_bytes / 1e3:.0f} |")
+        top = sorted(r.messages.items(), key=lambda kv: -kv[1][0])[:6]
+        print(f"| websocket frames received / s | {r.ws_frames / r.mapping_s:.1f} |")
+        print("| messages received (count, kB) | " + ", ".join(f"{k} {c} ({b / 1e3:.0f})" for k, (c, b) in top) + " |")
+    heads = " | ".join("headless" if r.browsers < 0 else f"{r.browsers} browser(s)" for r in runs)
+    print(f"\n| CPU while mapping, % of one core | {heads} |")
+    print("|---|" + "---:|" * len(runs))
+    for name in sorted({k for r in runs for k in r.cpu_s}):
+        cells = " | ".join(f"{100 * r.cpu_s.get(name, 0.0) / r.mapping_s:.0f}" for r in runs)
+        print(f"| {name} | {cells} |")
     print("\n| novel view | rgb render ms | background (rgb + half-res depth) ms |\n|---|---:|---:|")
     for res, rgb, both in renders:
         print(f"| {res} | {1000 * rgb:.0f} | {1000 * both:.0f} |")
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=20, help="frames mapped per run")
     parser.add_argument("--browsers", type=int, nargs="+", default=[0, 1, 3], help="browser counts to run")
+    parser.add_argument("--no-renders", action="store_true", help="skip the novel-view render timings")
+    parser.add_argument("--no-headless", action="store_true", help="skip the run without dashboard")
+    parser.add_argument("--hide-mesh", action="store_true", help="mesh layer off (what the rest of the page costs)")
     parser.add_argument("overrides", nargs="*", help="config overrides, e.g. mapping.max_iters=5")
     args = parser.parse_args()
     files = [source_config_file("synthetic"), ROOT / "configs" / "fast.yaml"]
@@ -251,15 +333,15 @@ def main() -> None:
     cfg_of = lambda: load_config([f for f in files if f], [*base, *args.overrides])  # noqa: E731
     from playwright.sync_api import sync_playwright
 
-    runs: list[Run] = []
+    runs: list[Run] = [] if args.no_headless else [headless_run(cfg_of())]
     renders: list[tuple[str, float, float]] = []
     with sync_playwright() as playwright:
         for n in args.browsers:
-            run, worker, dashboard, browser = mapping_run(cfg_of(), n, playwright)
+            run, worker, dashboard, browser = mapping_run(cfg_of(), n, playwright, args.hide_mesh)
             runs.append(run)
-            print(f"{n} browser(s): {run.frames} frames in {run.wall_s:.1f} s", file=sys.stderr)
-            if not renders:
-                renders = render_times(worker, dashboard)
+            print(f"{n} browser(s): {run.frames} frames mapped in {run.mapping_s:.1f} s", file=sys.stderr)
+            if not renders and not args.no_renders:
+                renders = render_times(worker)
             if browser is not None:
                 browser.close()
             dashboard.stop()

@@ -5,6 +5,7 @@ Mapper (tiny configuration) on the room and on real 7-Scenes frames."""
 from __future__ import annotations
 
 import io
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import replace
@@ -18,6 +19,7 @@ from h2viz.errors import H2vizError
 from h2viz.sources.base import make_source
 from h2viz.types import KeyframeState
 from h2viz.worker import LatestSlot, MappingWorker, RenderedView, WorkerSettings
+from h2viz.worker.mesh_thread import MeshThread
 from h2viz.worker.requests import scaled_intrinsics
 from tests.viewer.fakes import (
     BoxRoomSource,
@@ -106,9 +108,7 @@ def test_pause_step_resume(make_worker: Factory) -> None:
     assert worker.slot.get()[1].frames_done == 0
     stats = worker.submit("step").result(5)
     assert stats.index == 0
-    assert wait_for(
-        worker, lambda s: s.frames_done == 1 and s.paused and bool(s.chunks)
-    )  # re-meshed while idle
+    assert wait_for(worker, lambda s: s.frames_done == 1 and s.paused and bool(s.chunks))  # re-meshed while idle
     time.sleep(0.3)
     assert worker.slot.get()[1].frames_done == 1
     worker.submit("resume").result(5)
@@ -122,16 +122,10 @@ def test_render_is_served_between_frames_and_bands_are_stitched(make_worker: Fac
     wait_for(worker, lambda s: s.frames_done >= 2)
     K, T = intrinsics(200, 150), room_pose(3, 40)
     before = worker.slot.get()[1].frames_done
-    view = worker.submit(
-        "render", K=K, T_world_camera=T, height=150, width=200, mode="rgb", with_depth=True
-    ).result(10)
+    view = worker.submit("render", K=K, T_world_camera=T, height=150, width=200, mode="rgb", with_depth=True).result(10)
     assert worker.slot.get()[1].frames_done - before <= 2  # served within about one frame's mapping
     wait_for(worker, lambda s: s.frames_done >= before + 3)  # and mapping goes on
-    assert (
-        isinstance(view, RenderedView)
-        and view.image.shape == (150, 200, 3)
-        and view.depth_m.shape == (150, 200)
-    )
+    assert isinstance(view, RenderedView) and view.image.shape == (150, 200, 3) and view.depth_m.shape == (150, 200)
     worker.submit("pause").result(5)
     bands = worker.submit("render", K=K, T_world_camera=T, height=150, width=200, mode="depth").result(10)
     assert [h for h, w, m in mapper.rendered[-2:]] == [96, 54]  # two row bands
@@ -238,9 +232,7 @@ def test_real_mapper_in_the_worker(make_worker: Factory, tmp_path) -> None:  # n
     truth = trace_room(K, T, 48, 64)[0]
     hit = depth > 0
     assert hit.mean() > 0.5 and np.median(np.abs(depth[hit] - truth[hit])) < 0.1
-    mesh = trimesh.load(
-        io.BytesIO(worker.submit("export", format="glb").result(30)), file_type="glb", force="mesh"
-    )
+    mesh = trimesh.load(io.BytesIO(worker.submit("export", format="glb").result(30)), file_type="glb", force="mesh")
     assert len(mesh.faces) > 0
     path = worker.submit("save", path=str(tmp_path / "room.pt")).result(30)
     restored, _ = load_checkpoint(path, cfg)
@@ -268,3 +260,132 @@ def test_real_mapper_on_real_data(make_worker: Factory, shared_dataset: Callable
     ).result(60)
     both = (view.image > 0) & (frame.depth_m > 0)
     assert both.mean() > 0.5 and np.median(np.abs(view.image[both] - frame.depth_m[both])) < 0.05
+
+
+# ------------------------------------------------------------------------------- meshing beside mapping
+
+
+class ScriptedJob:
+    """A mesh job for MeshThread tests: runs `passes` passes, each waiting for `gate` (when given)."""
+
+    def __init__(self, name: str, passes: int = 1, gate: threading.Event | None = None) -> None:
+        self.name, self.passes, self.gate = name, passes, gate
+        self.version = self.field_version = 0
+        self.names = [name]
+        self.ran: list[int] = []
+        self.stopped = False
+        self.started = threading.Event()
+
+    def run(self, stop: Callable[[], bool], on_pass: Callable[[list, bool], None]) -> None:
+        self.started.set()
+        for i in range(self.passes):
+            if i and stop():
+                self.stopped = True
+                return
+            if self.gate is not None:
+                assert self.gate.wait(10)
+            if self.name == "broken":
+                raise RuntimeError("meshing failed on purpose")
+            self.ran.append(i)
+            on_pass([(i, 0, 0)], i == 0)
+
+    def after(self, older: ScriptedJob) -> ScriptedJob:
+        self.names = self.names + older.names
+        return self
+
+
+def test_mesh_thread_merges_waiting_jobs_and_cuts_the_running_one_short() -> None:
+    published: list[float] = []
+    thread = MeshThread(lambda: published.append(time.monotonic()), lambda: 0.0).start()
+    try:
+        gate = threading.Event()
+        first = ScriptedJob("first", passes=50, gate=gate)
+        thread.submit(first)
+        assert first.started.wait(10)
+        second, third = ScriptedJob("second"), ScriptedJob("third")
+        thread.submit(second)
+        thread.submit(third)  # replaces the waiting second job, covering both
+        gate.set()
+        assert thread.wait_idle(10)
+        assert first.stopped and len(first.ran) < 50  # the waiting job cut the running one short
+        assert third.names == ["third", "second"] and third.ran == [0] and second.ran == []
+        assert published and not thread.errors
+    finally:
+        thread.stop()
+
+
+def test_mesh_thread_publishes_at_most_at_the_update_rate() -> None:
+    published: list[float] = []
+    thread = MeshThread(lambda: published.append(time.monotonic()), lambda: 5.0).start()
+    try:
+        for i in range(6):
+            thread.submit(ScriptedJob(f"job{i}", passes=3))
+            time.sleep(0.05)
+        assert thread.wait_idle(10)
+        gaps = np.diff(published)
+        assert len(published) >= 2 and (gaps >= 0.2 - 1e-3).all()  # 5 Hz
+        assert len(thread.passes) == 18  # every pass ran; their results went out together
+    finally:
+        thread.stop()
+
+
+def test_mesh_errors_are_reported_and_later_jobs_still_run() -> None:
+    thread = MeshThread(lambda: None, lambda: 0.0).start()
+    try:
+        thread.submit(ScriptedJob("broken"))
+        assert thread.wait_idle(10)
+        ok = ScriptedJob("ok")
+        thread.submit(ok)
+        assert thread.wait_idle(10)
+        assert ok.ran == [0] and "meshing failed on purpose" in thread.errors[0]
+    finally:
+        thread.stop()
+
+
+class SlowMeshMapper(FakeMapper):
+    """A FakeMapper whose mesh jobs last until `frames_while_meshing` more frames were mapped."""
+
+    def __init__(self, frames_while_meshing: int) -> None:
+        super().__init__()
+        self.frames_while_meshing = frames_while_meshing
+        self.mapped_during: list[int] = []
+
+    def mesh_job(self, refresh_s: float = 0.0, whole: bool = False) -> object:
+        job = super().mesh_job(refresh_s, whole)
+        if job is None or whole:
+            return job
+        inner_run = job.run
+
+        def run(stop: object = None, on_pass: object = None) -> None:
+            start = self._version
+            deadline = time.monotonic() + 10
+            while self._version < start + self.frames_while_meshing and time.monotonic() < deadline:
+                time.sleep(0.01)
+            self.mapped_during.append(self._version - start)
+            inner_run(stop, on_pass)
+
+        job.run = run  # type: ignore[method-assign]
+        return job
+
+
+def test_meshing_never_stalls_mapping(make_worker: Factory) -> None:
+    mapper = SlowMeshMapper(frames_while_meshing=3)
+    worker = make_worker(BoxRoomSource(n=16), mapper, mesh_update_hz=50.0)
+    assert worker.wait_finished(30)
+    assert mapper.mapped_during and max(mapper.mapped_during) >= 3  # frames went on being mapped meanwhile
+    snap = worker.slot.get()[1]
+    assert snap.frames_done == 16 and set(snap.chunks) == set(mapper.mesh_chunks())
+
+
+def test_each_frame_reaches_the_snapshots_through_the_mesh_thread(make_worker: Factory) -> None:
+    mapper = FakeMapper(delay_s=0.1)
+    worker = make_worker(BoxRoomSource(n=8), mapper, mesh_update_hz=20.0)
+    seen_versions: set[int] = set()
+    version = 0
+    while not (worker.slot.get()[1] is not None and worker.slot.get()[1].finished):
+        version, snap = worker.slot.wait_newer(version, 0.5)
+        if snap is not None:
+            seen_versions |= {c.version for c in snap.chunks.values()}
+    assert len(seen_versions) >= 4  # chunk updates streamed while mapping, not only at the end
+    records = list(worker.meshing.passes)
+    assert records and all(r.finished >= r.submitted for r in records)

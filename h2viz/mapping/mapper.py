@@ -15,6 +15,7 @@ from h2viz.geometry import backproject
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.keyframes import KeyframeSet
 from h2viz.mapping.losses import mapping_losses
+from h2viz.mapping.mesh_job import FrozenField, MeshJob
 from h2viz.mapping.meshing import ChunkedMesher, export_mesh, merge_chunks
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.optim import GrowingAdam
@@ -56,7 +57,7 @@ class Mapper:
         self.keyframe_rays: list[FrameRays] = []
         self.thumbnails: list[np.ndarray] = []
         self.mesher = ChunkedMesher(cfg.voxel_size_m, cfg.mesh_resolution, cfg.chunk_voxels)
-        self.touched = np.zeros(0, dtype=bool)  # (V,) voxels changed since the last mesh update
+        self.touched = np.zeros(0, dtype=bool)  # (V,) voxels allocated or observed since the last mesh job
         self.trajectory: list[np.ndarray] = []
         self.frames_done = 0
         self.version = 0
@@ -91,7 +92,7 @@ class Mapper:
             selected = self.keyframes.select(alloc.observed, frame.index)  # coverage-maximising K keyframes
         frames = [rays, *(self.keyframe_rays[i] for i in selected)]
         iters, losses = self._optimise(frames, timer)  # at most max_iters, early ending
-        self.touched[alloc.new_voxels] = True  # new voxels' chunks must be meshed
+        self.touched[np.concatenate([alloc.new_voxels, alloc.observed])] = True  # re-meshed by the next mesh job
         self.trajectory.append(frame.T_world_camera)
         self.frames_done += 1
         self.max_depth_m = max(self.max_depth_m, float(frame.depth_m.max(initial=0.0)))
@@ -183,7 +184,6 @@ class Mapper:
         with timer("optimiser"):
             self.optim.step()
             self.net_optim.step()
-        self.touched[torch.unique(samples.voxel).cpu().numpy()] = True
         return {k: v.detach() for k, v in terms.items()}
 
     # ------------------------------------------------------------------------------------- outputs
@@ -217,24 +217,36 @@ class Mapper:
     def mesh_resolution(self, value: int) -> None:
         self.mesher.resolution = int(value)
 
-    def update_mesh(self) -> None:
-        """Re-mesh the chunks whose voxels changed since the last update. Only voxels whose priors are
-        initialised are meshed: a voxel at the edge of the view would otherwise close the surface with a
-        skirt where its unobserved corners meet observed ones."""
-        coords = self.octree.voxel_coords()
-        dirty = self.mesher.chunks_of(coords[self.touched], halo=True)
-        self.version += 1
-        meshable = self.priors.initialised(self.octree.n_voxels)
-        self.mesher.update(coords[meshable], dirty, self.sdf_m, self.color_u8, self.version)
+    def mesh_job(self, refresh_s: float = 0.0, whole: bool = False) -> MeshJob | None:
+        """Freeze what a mesh update needs, to run on any thread while mapping goes on: new voxels first, then
+        for up to `refresh_s` seconds the voxels allocated or observed since the last job and the stalest
+        chunks; `whole` re-meshes every chunk from the field now instead. None when nothing changed since
+        everything was last meshed. Only voxels whose priors are initialised are meshed: a voxel at the edge
+        of the view would otherwise close the surface with a skirt where its unobserved corners meet observed
+        ones."""
+        if not self.touched.any() and self.mesher.stale(self.frames_done) == 0:
+            return None
+        meshable = np.flatnonzero(self.priors.initialised(self.octree.n_voxels))  # (V',) voxel ids
+        dirty = self.touched[meshable] & (not whole)
         self.touched[:] = False
+        self.version += 1
+        field = FrozenField(self.field, self.cfg.truncation_m)
+        coords = self.octree.voxel_coords()[meshable]
+        return MeshJob(self.mesher, coords, meshable, dirty, field, self.version, self.frames_done, refresh_s, whole)
+
+    def update_mesh(self) -> None:
+        """Re-mesh every chunk from the field now, on this thread, when anything changed since the last time."""
+        job = self.mesh_job(whole=True)
+        if job is not None:
+            job.run()
 
     def mesh_chunks(self) -> dict[tuple[int, int, int], MeshChunk]:
-        return dict(self.mesher.chunks)
+        """The current mesh chunks (safe to call while a mesh job runs on another thread)."""
+        return self.mesher.chunks
 
     def mesh(self) -> trimesh.Trimesh:
-        """Welded mesh of the whole map (re-meshes what changed first)."""
-        if self.touched.any():
-            self.update_mesh()
+        """Welded mesh of the whole map, every chunk re-meshed from the current field first when needed."""
+        self.update_mesh()
         return merge_chunks(self.mesher.chunks)
 
     def export_mesh(self, path: Path) -> None:

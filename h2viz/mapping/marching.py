@@ -27,6 +27,8 @@ class ChunkLattice:
     origin: np.ndarray  # (3,) int64 global lattice index of local index (0,0,0)
     cells: np.ndarray  # (X,Y,Z) bool, cells (by lower corner) inside allocated voxels
     points: np.ndarray  # (N,3) int64 local lattice indices of every corner of those cells
+    point_voxel: np.ndarray  # (N,) int64 row (into the chunk's voxels) of a voxel containing each point
+    point_flagged: np.ndarray  # (N,) bool, the point is a corner of a cell of a flagged voxel
 
 
 def corner_slices(shape: tuple[int, ...]) -> Iterator[tuple[slice, ...]]:
@@ -35,38 +37,52 @@ def corner_slices(shape: tuple[int, ...]) -> Iterator[tuple[slice, ...]]:
         yield tuple(slice(o, o + n) for o, n in zip(offset, shape, strict=True))
 
 
-def chunk_lattice(key: tuple[int, int, int], voxels: np.ndarray, resolution: int) -> ChunkLattice:
-    """Cells and needed lattice points of one chunk's allocated voxels (V,3) (global voxel coords)."""
+def chunk_lattice(
+    key: tuple[int, int, int], voxels: np.ndarray, resolution: int, flags: np.ndarray | None = None
+) -> ChunkLattice:
+    """Cells and needed lattice points of one chunk's allocated voxels (V,3) (global voxel coords); `flags`
+    (V,) marks voxels whose points are reported in `point_flagged`."""
     lo = voxels.min(axis=0)
-    occupied = np.zeros(voxels.max(axis=0) - lo + 1, dtype=bool)
-    occupied[tuple((voxels - lo).T)] = True
-    cells = occupied.repeat(resolution, 0).repeat(resolution, 1).repeat(resolution, 2)
-    needed = np.zeros(np.add(cells.shape, 1), dtype=bool)
-    for sl in corner_slices(cells.shape):
-        needed[sl] |= cells
-    return ChunkLattice(key, lo * resolution, cells, np.argwhere(needed))
+    rows = np.full(voxels.max(axis=0) - lo + 1, -1, dtype=np.int32)  # voxel row per occupied voxel cell
+    rows[tuple((voxels - lo).T)] = np.arange(len(voxels), dtype=np.int32)
+    cell_rows = rows.repeat(resolution, 0).repeat(resolution, 1).repeat(resolution, 2)  # (X,Y,Z)
+    cells = cell_rows >= 0
+    flagged_cells = cells & np.append(np.zeros(len(voxels), bool) if flags is None else flags, False)[cell_rows]
+    point_rows = np.full(np.add(cells.shape, 1), -1, dtype=np.int32)  # (X+1,Y+1,Z+1)
+    flagged = np.zeros(point_rows.shape, dtype=bool)
+    for sl in corner_slices(cells.shape):  # a point takes the voxel of any cell it is a corner of
+        np.copyto(point_rows[sl], cell_rows, where=cells)
+        flagged[sl] |= flagged_cells
+    points = np.argwhere(point_rows >= 0)
+    at = tuple(points.T)
+    return ChunkLattice(key, lo * resolution, cells, points, point_rows[at].astype(np.int64), flagged[at])
 
 
-def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unique int64 rows (U,3) of (N,3) and the inverse index (N,) (packed keys when the span allows)."""
+def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unique int64 rows (U,3) of (N,3), the index (U,) of each one's first occurrence and the inverse
+    index (N,) (packed keys when the span allows)."""
     if len(rows) == 0:
-        return rows, np.zeros(0, dtype=np.int64)
-    lo = rows.min(axis=0)
-    span = rows.max(axis=0) - lo + 1
+        return rows, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    keys = pack_rows(rows, rows.min(axis=0), rows.max(axis=0))
+    if keys is None:
+        _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+    else:
+        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return rows[first], first, inverse.reshape(-1)
+
+
+def pack_rows(rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
+    """One int64 key (N,) per integer row (N,3) inside the box [lo, hi], or None when the box is too large."""
+    span = np.asarray(hi, dtype=np.int64) - lo + 1
     if float(np.prod(span.astype(np.float64))) >= 2.0**62:
-        uniq, inverse = np.unique(rows, axis=0, return_inverse=True)
-        return uniq, inverse.reshape(-1)
+        return None
     d = rows - lo
-    keys = (d[:, 0] * span[1] + d[:, 1]) * span[2] + d[:, 2]
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    return rows[first], inverse.reshape(-1)
+    return (d[:, 0] * span[1] + d[:, 1]) * span[2] + d[:, 2]
 
 
 def on_chunk_face(lat: ChunkLattice, chunk_cells: int) -> np.ndarray:
     """(N,) bool: which of the lattice's points lie on a chunk face (global index % chunk_cells == 0)."""
-    on_face = [
-        (o + np.arange(n + 1)) % chunk_cells == 0 for o, n in zip(lat.origin, lat.cells.shape, strict=True)
-    ]
+    on_face = [(o + np.arange(n + 1)) % chunk_cells == 0 for o, n in zip(lat.origin, lat.cells.shape, strict=True)]
     p = lat.points
     return on_face[0][p[:, 0]] | on_face[1][p[:, 1]] | on_face[2][p[:, 2]]
 
@@ -140,9 +156,7 @@ def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarra
     Returns vertices (U,3) float32, faces (M,3) int64 and, per kept vertex, its index in the input.
     """
     v = np.ascontiguousarray(vertices, dtype=np.float32) + np.float32(0.0)  # -0.0 -> +0.0
-    _, first, inverse = np.unique(
-        v.view(np.dtype((np.void, 12))).ravel(), return_index=True, return_inverse=True
-    )
+    _, first, inverse = np.unique(v.view(np.dtype((np.void, 12))).ravel(), return_index=True, return_inverse=True)
     f = inverse.reshape(-1)[faces]
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
     used = np.zeros(len(first), dtype=bool)

@@ -1,93 +1,36 @@
-"""Chunked, welded meshing of the sparse voxel map: re-meshes only changed chunks, merges and exports.
+"""Chunked, welded meshing of the sparse voxel map: re-meshes only chosen chunks, merges and exports.
 
 The map is cut into chunks of chunk_voxels^3 leaf voxels, keyed by floor(voxel / chunk_voxels). Each chunk
-keeps its own MeshChunk; `update` re-meshes the chunks it is told changed (and those whose voxel set
-changed) and hands back the same objects for the others, so a viewer can diff by identity or `.version`.
+keeps its own MeshChunk and a cache of its lattice values. `update` re-meshes first the chunks whose voxel
+set changed (evaluating only their new lattice points), then, within a time budget, the chunks holding dirty
+voxels (evaluating those voxels' points) and the chunks evaluated longest ago (all their points); it hands
+back the same objects for the others, so a viewer can diff by identity.
+
+One update runs at a time (on any thread). After each pass the mesher swaps in new `chunks` and bookkeeping
+dicts whole, so other threads may read `chunks` and call `stale` while an update runs.
 """
 
 from __future__ import annotations
 
 import itertools
-import logging
-from collections.abc import Callable, Iterable, Iterator, Mapping
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from h2viz.errors import ConfigError, H2vizError
-from h2viz.mapping.marching import (
-    ChunkLattice,
-    chunk_lattice,
-    march,
-    on_chunk_face,
-    unique_rows,
-    weld,
-    world_vertices,
-)
+from h2viz.errors import ConfigError
+from h2viz.mapping.chunk_values import ChunkValues
+from h2viz.mapping.lattice_values import ColorFn, MeshingError, SdfFn, sample_lattices
+from h2viz.mapping.marching import ChunkLattice, chunk_lattice, weld
+from h2viz.mapping.mesh_passes import NEVER, ChunkKey, Eval, Item, Meshed, Update, coloured, group_voxels, surface
 from h2viz.types import MeshChunk
 
-log = logging.getLogger(__name__)
+__all__ = ["ChunkKey", "ChunkedMesher", "ColorFn", "MeshingError", "SdfFn", "export_mesh", "merge_chunks"]
 
-ChunkKey = tuple[int, int, int]
-SdfFn = Callable[[np.ndarray], np.ndarray]  # points (N,3) float32 -> SDF (N,) float32 metres
-ColorFn = Callable[[np.ndarray], np.ndarray]  # points (N,3) float32 -> colours (N,3) uint8
 EXPORT_SUFFIXES = (".ply", ".glb", ".obj")
 MAX_LATTICE_CELLS = 1024  # lattice cells along a chunk edge (chunk_voxels * resolution)
-_FIELD_BATCH = 1 << 20  # points per sdf_fn / color_fn call
-_POINTS_PER_PASS = 1 << 22  # lattice points sampled together (bounds memory on full re-meshes)
-
-
-class MeshingError(H2vizError):
-    """A field callback returned the wrong shape or type, or a mesh cannot be written."""
-
-
-def _call_field(
-    fn: Callable[[np.ndarray], np.ndarray], points: np.ndarray, what: str, width: int
-) -> np.ndarray:
-    """Evaluate `fn` on points (N,3) float32 in batches, checking each answer has shape (n,) or (n,width)."""
-    parts = []
-    for start in range(0, len(points), _FIELD_BATCH):
-        batch = points[start : start + _FIELD_BATCH]
-        want = (len(batch),) if width == 0 else (len(batch), width)
-        out = np.asarray(fn(batch))
-        if out.shape != want:
-            raise MeshingError(
-                f"meshing: {what} returned shape {out.shape} for {len(batch)} points; expected {want}"
-            )
-        parts.append(out)
-    return np.concatenate(parts) if parts else np.zeros((0,) if width == 0 else (0, width))
-
-
-def _sample(
-    lattices: list[ChunkLattice], spacing_m: float, sdf_fn: SdfFn, chunk_cells: int
-) -> list[np.ndarray]:
-    """SDF values (N,) float32 at each lattice's points.
-
-    Points on a chunk face (global index a multiple of `chunk_cells`) can belong to several chunks: they are
-    evaluated once for all of them, so neighbouring chunks see identical values there.
-    """
-    index = [lat.origin + lat.points for lat in lattices]  # (N,3) global lattice indices per chunk
-    shared = [on_chunk_face(lat, chunk_cells) for lat in lattices]
-    uniq, inverse = unique_rows(np.concatenate([idx[s] for idx, s in zip(index, shared, strict=True)]))
-    own = [idx[~s] for idx, s in zip(index, shared, strict=True)]
-    points = (np.concatenate([*own, uniq]) * spacing_m).astype(np.float32)  # (N,3) world metres
-    values = _call_field(sdf_fn, points, "sdf_fn", 0).astype(np.float32)
-    if not np.isfinite(values).all():
-        log.warning(
-            "sdf_fn gave %d non-finite values; cells touching them stay unmeshed",
-            (~np.isfinite(values)).sum(),
-        )
-    n_own = len(points) - len(uniq)
-    own_values, shared_values = values[:n_own], values[n_own:][inverse]
-    out, a, b = [], 0, 0
-    for s in shared:
-        n_shared = int(s.sum())
-        v = np.empty(len(s), dtype=np.float32)
-        v[~s], v[s] = own_values[a : a + len(s) - n_shared], shared_values[b : b + n_shared]
-        a, b = a + len(s) - n_shared, b + n_shared
-        out.append(v)
-    return out
 
 
 def _as_voxels(voxel_coords: np.ndarray) -> np.ndarray:
@@ -101,21 +44,21 @@ def _as_voxels(voxel_coords: np.ndarray) -> np.ndarray:
 
 
 class ChunkedMesher:
-    """Per-chunk marching-cubes meshes of the allocated leaf voxels, re-meshing only what changed."""
+    """Per-chunk marching-cubes meshes of the allocated leaf voxels, re-meshing only what it is asked to."""
 
     def __init__(self, voxel_size_m: float, resolution: int = 8, chunk_voxels: int = 8) -> None:
         if not (np.isfinite(voxel_size_m) and voxel_size_m > 0):
-            raise ConfigError(
-                f"meshing: voxel_size_m must be a positive number of metres, got {voxel_size_m}"
-            )
+            raise ConfigError(f"meshing: voxel_size_m must be a positive number of metres, got {voxel_size_m}")
         if int(chunk_voxels) < 1:
             raise ConfigError(f"meshing: chunk_voxels must be >= 1, got {chunk_voxels}")
         self._voxel_size_m = float(voxel_size_m)
         self._chunk_voxels = int(chunk_voxels)
-        self._chunks: dict[ChunkKey, MeshChunk] = {}
-        self._meshed_voxels: dict[ChunkKey, bytes] = {}  # voxel set each chunk was last meshed with
+        self._chunks: dict[ChunkKey, MeshChunk] = {}  # replaced whole, never changed in place
+        self._meshed: dict[ChunkKey, Meshed] = {}  # every chunk with voxels, surface or not; same rule
+        self._values: dict[ChunkKey, ChunkValues] = {}  # lattice values per chunk (used by `update` only)
         self._resolution = 0
         self.resolution = resolution
+        self.remeshed: list[ChunkKey] = []  # chunks the last update re-meshed, in order
 
     @property
     def voxel_size_m(self) -> float:
@@ -136,17 +79,25 @@ class ChunkedMesher:
         if value < 1 or value * self._chunk_voxels > MAX_LATTICE_CELLS:
             top = MAX_LATTICE_CELLS // self._chunk_voxels
             raise ConfigError(
-                f"meshing: resolution {value} is out of range; use 1 .. {top} "
-                f"with chunk_voxels = {self._chunk_voxels}"
+                f"meshing: resolution {value} is out of range; use 1 .. {top} with chunk_voxels = {self._chunk_voxels}"
             )
-        if value != self._resolution:
-            self._resolution = value
-            self._meshed_voxels.clear()  # every chunk counts as changed
+        self._resolution = value
 
     @property
     def chunks(self) -> dict[ChunkKey, MeshChunk]:
         """The current non-empty chunks (a new dict holding the cached MeshChunk objects)."""
         return dict(self._chunks)
+
+    @property
+    def cache_bytes(self) -> int:
+        """Memory held by the lattice value caches."""
+        return sum(v.nbytes for v in list(self._values.values()))
+
+    def stale(self, field_version: int) -> int:
+        """How many chunks were evaluated whole from a field older than `field_version` or at another
+        resolution."""
+        res = self._resolution.to_bytes(4, "little")
+        return sum(m.field_version < field_version or m.signature[:4] != res for m in self._meshed.values())
 
     def chunks_of(self, voxel_coords: np.ndarray, halo: bool = False) -> set[ChunkKey]:
         """Chunk keys floor(coord / chunk_voxels) of voxels (V,3).
@@ -163,82 +114,141 @@ class ChunkedMesher:
     def update(
         self,
         voxel_coords: np.ndarray,
-        dirty_chunks: Iterable[tuple[int, int, int]] | None,
+        dirty: Iterable[Sequence[int]] | None,
         sdf_fn: SdfFn,
         color_fn: ColorFn,
         version: int,
+        *,
+        voxel_ids: np.ndarray | None = None,
+        dirty_voxels: np.ndarray | None = None,
+        field_version: int = 0,
+        refresh_s: float = 0.0,
+        stop: Callable[[], bool] | None = None,
+        on_pass: Callable[[list[ChunkKey], bool], None] | None = None,
     ) -> dict[ChunkKey, MeshChunk]:
-        """Re-mesh the dirty chunks (None = all) plus chunks whose voxel set changed; return every chunk.
+        """Mesh the voxels (V,3); returns every non-empty chunk (those not re-meshed are the same objects).
 
-        Unchanged chunks are the same MeshChunk objects as before; chunks with no surface are left out.
+        Required, in this order: chunks whose voxel set or resolution changed (only their new lattice points
+        are evaluated) and the `dirty` chunks (None = all; every point). Then, for up to `refresh_s` seconds:
+        chunks with `dirty_voxels` (V,) bool, most first (those voxels' points), and chunks evaluated whole
+        longest ago from a field older than `field_version` (every point). Work stops between passes when
+        `stop()` is true (a newer update is waiting; chunks left out stay as they are and count as changed or
+        stale next time).
+
+        `voxel_ids` (V,) are what sdf_fn receives with the points (default: row numbers); `on_pass(keys,
+        required)` runs after each pass of chunks has been swapped in.
         """
-        groups = self._group(_as_voxels(voxel_coords))
-        for key in set(self._chunks) - set(groups):
-            del self._chunks[key]
-        for key in set(self._meshed_voxels) - set(groups):
-            del self._meshed_voxels[key]
-        wanted = (
-            set(groups) if dirty_chunks is None else {tuple(map(int, k)) for k in dirty_chunks} & set(groups)
-        )
-        wanted |= {k for k, v in groups.items() if self._meshed_voxels.get(k) != v.tobytes()}
-        for batch in self._passes(sorted(wanted), groups):
-            self._remesh(batch, sdf_fn, color_fn, version)
-        self._meshed_voxels.update((k, groups[k].tobytes()) for k in wanted)
+        coords = _as_voxels(voxel_coords)
+        ids = np.arange(len(coords), dtype=np.int64) if voxel_ids is None else np.asarray(voxel_ids, np.int64)
+        flags = np.zeros(len(coords), bool) if dirty_voxels is None else np.asarray(dirty_voxels, dtype=bool)
+        if ids.shape != (len(coords),) or flags.shape != (len(coords),):
+            raise MeshingError(f"meshing: voxel_ids and dirty_voxels must have shape ({len(coords)},)")
+        groups = group_voxels(coords, ids, flags, self._chunk_voxels)
+        job = Update(groups, self._resolution, sdf_fn, color_fn, version, field_version)
+        self._forget(set(groups))
+        required = self._required(job, dirty)
+        self.remeshed = []
+        stopped = lambda: stop is not None and stop()  # noqa: E731
+        for n, items in enumerate(job.passes(required)):
+            if n and stopped():
+                return dict(self._chunks)
+            self._remesh(items, job, on_pass, True)
+        deadline = time.perf_counter() + refresh_s
+        whole = {k for k, mode in required if mode is Eval.WHOLE}
+        for items in job.passes(self._optional(job, whole), refresh=True) if job.faces.enabled else ():
+            if time.perf_counter() >= deadline or stopped():
+                break
+            self._remesh(items, job, on_pass, False)
         return dict(self._chunks)
 
-    def _group(self, coords: np.ndarray) -> dict[ChunkKey, np.ndarray]:
-        """Unique voxels (V,3) split by chunk key, sorted within each chunk (so bytes identify the set)."""
-        if len(coords) == 0:
-            return {}
-        keys = np.floor_divide(coords, self._chunk_voxels)
-        order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0], keys[:, 2], keys[:, 1], keys[:, 0]))
-        coords, keys = coords[order], keys[order]
-        fresh = np.ones(len(coords), dtype=bool)
-        fresh[1:] = np.any(coords[1:] != coords[:-1], axis=1)  # drop repeated voxels
-        coords, keys = coords[fresh], keys[fresh]
-        starts = np.flatnonzero(np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)])
-        return {
-            (int(keys[s, 0]), int(keys[s, 1]), int(keys[s, 2])): part
-            for s, part in zip(starts, np.split(coords, starts[1:]), strict=True)
-        }
+    def _forget(self, present: set[ChunkKey]) -> None:
+        """Drop the chunks that have no voxels any more."""
+        if set(self._meshed) - present or set(self._chunks) - present:
+            self._chunks = {k: c for k, c in self._chunks.items() if k in present}
+            self._meshed = {k: m for k, m in self._meshed.items() if k in present}
+        for key in set(self._values) - present:
+            del self._values[key]
 
-    def _passes(
-        self, keys: list[ChunkKey], groups: dict[ChunkKey, np.ndarray]
-    ) -> Iterator[list[ChunkLattice]]:
-        """Lattices of the chunks to re-mesh, in passes of at most ~_POINTS_PER_PASS lattice points."""
-        batch: list[ChunkLattice] = []
-        n_points = 0
-        for key in keys:
-            batch.append(chunk_lattice(key, groups[key], self._resolution))
-            n_points += len(batch[-1].points)
-            if n_points >= _POINTS_PER_PASS:
-                yield batch
-                batch, n_points = [], 0
-        if batch:
-            yield batch
+    def _required(self, job: Update, dirty: Iterable[Sequence[int]] | None) -> list[Item]:
+        """The chunks whose voxel set or resolution changed, then the dirty ones (whole)."""
+        if dirty is None:
+            asked = sorted(job.groups)
+        else:
+            asked = [k for k in dict.fromkeys(tuple(int(i) for i in k) for k in dirty) if k in job.groups]
+        changed = [k for k in job.groups if self._meshed.get(k, NEVER).signature != job.signature(k)]
+        changed.sort(key=lambda k: (not job.groups[k].flags.any(), k))  # the latest frames' chunks first
+        whole = set(asked)
+        new = [(k, Eval.WHOLE if k in whole else Eval.NEW) for k in changed]
+        return new + [(k, Eval.WHOLE) for k in asked if k not in set(changed)]  # type: ignore[misc]
 
-    def _remesh(self, lattices: list[ChunkLattice], sdf_fn: SdfFn, color_fn: ColorFn, version: int) -> None:
-        """Sample, march, weld and colour a pass of chunks, replacing their cache entries."""
-        spacing_m = self._voxel_size_m / self._resolution
-        meshes: list[tuple[ChunkKey, np.ndarray, np.ndarray]] = []
-        chunk_cells = self._chunk_voxels * self._resolution
-        for lat, values in zip(lattices, _sample(lattices, spacing_m, sdf_fn, chunk_cells), strict=True):
-            self._chunks.pop(lat.key, None)
-            marched = march(lat, values)
-            if marched is None:
-                continue
-            verts, faces, volume = marched
-            vertices, faces, _ = weld(world_vertices(verts, volume, lat.origin, spacing_m), faces)
-            if len(faces):
-                meshes.append((lat.key, vertices, faces))
-        if not meshes:
-            return
-        colors = _call_field(color_fn, np.concatenate([m[1] for m in meshes]), "color_fn", 3)
-        if colors.dtype != np.uint8:
-            raise MeshingError(f"meshing: color_fn must return uint8 colours (0..255), got {colors.dtype}")
-        ends = np.cumsum([len(m[1]) for m in meshes])
-        for (key, vertices, faces), rgb in zip(meshes, np.split(colors, ends[:-1]), strict=True):
-            self._chunks[key] = MeshChunk(key, vertices, faces.astype(np.int32), rgb, int(version))
+    def _optional(self, job: Update, exclude: set[ChunkKey]) -> list[Item]:
+        """Chunks with dirty voxels (most first), then those evaluated whole longest ago from an older field
+        (a chunk that only had its new points evaluated counts as such), leaving out `exclude`."""
+        groups = job.groups
+        flagged = sorted((-int(g.flags.sum()), k) for k, g in groups.items() if k not in exclude and g.flags.any())
+        old = sorted(
+            (m.field_version, m.version, k)
+            for k, m in self._meshed.items()
+            if k in groups and k not in exclude and m.field_version < job.field_version
+        )
+        partial = {k for _, k in flagged}
+        return [(k, Eval.DIRTY) for _, k in flagged] + [(k, Eval.WHOLE) for _, _, k in old if k not in partial]
+
+    def _remesh(self, items: list[Item], job: Update, on_pass: Callable | None, required: bool) -> None:
+        """Sample, march, weld and colour a pass of chunks, then swap in the new chunk and bookkeeping dicts."""
+        res, keys = job.resolution, [k for k, _ in items]
+        lattices = [chunk_lattice(k, job.groups[k].coords, res, job.groups[k].flags) for k in keys]
+        need = [_need(lat, mode) for lat, (_, mode) in zip(lattices, items, strict=True)]
+        caches = [self._cache(lat, res) for lat in lattices]
+        ids = [job.groups[k].ids for k in keys]
+        spacing_m, chunk_cells = self._voxel_size_m / res, self._chunk_voxels * res
+        outside = lambda points: self._held_by_others(points, set(keys), chunk_cells)  # noqa: E731
+        values = sample_lattices(lattices, ids, need, caches, spacing_m, job.sdf_fn, chunk_cells, job.faces, outside)
+        surfaces = [s for lat, v in zip(lattices, values, strict=True) if (s := surface(lat, v, spacing_m))]
+        chunks = {k: c for k, c in self._chunks.items() if k not in set(keys)}
+        keep = {k: self._chunks[k] for k, mode in items if mode is not Eval.WHOLE and k in self._chunks}
+        chunks.update(coloured(surfaces, job.color_fn, job.version, keep))  # unmoved vertices keep their colour
+        meshed = dict(self._meshed)
+        for key, mode in items:
+            before = self._meshed.get(key, NEVER)
+            whole = mode is Eval.WHOLE or before.signature[:4] != job.signature(key)[:4]
+            meshed[key] = Meshed(job.signature(key), job.field_version if whole else before.field_version, job.version)
+        self._chunks, self._meshed = chunks, meshed
+        self.remeshed += keys
+        if on_pass is not None:
+            on_pass(keys, required)
+
+    def _held_by_others(
+        self, points: np.ndarray, exclude: set[ChunkKey], chunk_cells: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(known (U,), values (U,)) of chunk-face lattice points (U,3) in the caches of the chunks sharing them,
+        other than `exclude` (a chunk's cache holds the resolution it was last meshed at)."""
+        known, values = np.zeros(len(points), dtype=bool), np.zeros(len(points), dtype=np.float32)
+        base, on_face = np.floor_divide(points, chunk_cells), points % chunk_cells == 0
+        for offset in itertools.product((0, -1), repeat=3):
+            rows = np.flatnonzero(np.all(on_face | (np.array(offset) == 0), axis=1) & ~known)
+            keys, inverse = np.unique(base[rows] + offset, axis=0, return_inverse=True) if len(rows) else ([], [])
+            for j, key in enumerate(tuple(int(i) for i in k) for k in keys):
+                cache = None if key in exclude else self._values.get(key)
+                if cache is not None and cache.resolution == chunk_cells // self._chunk_voxels:
+                    sel = rows[np.asarray(inverse).reshape(-1) == j]
+                    found, held = cache.lookup(points[sel])
+                    known[sel[found]], values[sel[found]] = True, held[found]
+        return known, values
+
+    def _cache(self, lat: ChunkLattice, resolution: int) -> ChunkValues:
+        """The value cache of a lattice's chunk, covering its lattice box."""
+        hi = lat.origin + lat.cells.shape
+        cache = self._values.get(lat.key) or ChunkValues(resolution, lat.origin, tuple(hi - lat.origin + 1))
+        self._values[lat.key] = cache = cache.covering(resolution, lat.origin, hi)
+        return cache
+
+
+def _need(lat: ChunkLattice, mode: Eval) -> np.ndarray:
+    """(N,) bool lattice points an item evaluates even when cached."""
+    if mode is Eval.WHOLE:
+        return np.ones(len(lat.points), dtype=bool)
+    return lat.point_flagged if mode is Eval.DIRTY else np.zeros(len(lat.points), dtype=bool)
 
 
 def merge_chunks(chunks: Mapping[ChunkKey, MeshChunk] | Iterable[MeshChunk]) -> trimesh.Trimesh:

@@ -1,6 +1,10 @@
-"""A compact binary glTF (GLB) writer for vertex-coloured triangle meshes: float positions, smooth
-normals quantised to bytes (KHR_mesh_quantization), linear-light 8-bit vertex colours, 16-bit
-indices when they fit, and one material whose alpha sets the opacity."""
+"""A compact binary glTF (GLB) writer for vertex-coloured triangle meshes, sized for streaming to viser:
+positions quantised to 16 bits over the mesh's bounding box (KHR_mesh_quantization, undone by the node's
+translation and scale: 12 um steps over a 0.8 m chunk), linear-light 8-bit vertex colours, 16-bit indices
+when they fit, and one material whose alpha sets the opacity. Normals are not sent: viser's client
+recomputes smooth vertex normals for every mesh it loads; an all-zero NORMAL accessor without data keeps
+the glTF loader from switching the material to flat shading. About 16 bytes a vertex plus 6 a triangle.
+"""
 
 from __future__ import annotations
 
@@ -9,20 +13,8 @@ import struct
 
 import numpy as np
 
-_BYTE, _UBYTE, _UINT16, _UINT32, _FLOAT = 5120, 5121, 5123, 5125, 5126
+_BYTE, _UBYTE, _SHORT, _UINT16, _UINT32 = 5120, 5121, 5122, 5123, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (N,3) float32 of a triangle mesh (N,3)/(M,3)."""
-    v = vertices.astype(np.float32)
-    tri = v[faces]  # (M,3,3)
-    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (M,3), length = 2 * area
-    normals = np.zeros_like(v)
-    for corner in range(3):
-        np.add.at(normals, faces[:, corner], face_n)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return np.where(length > 0, normals / np.maximum(length, 1e-12), np.array([0, 0, 1], np.float32))
 
 
 def srgb_to_linear_u8(colors: np.ndarray, alpha: float = 1.0) -> np.ndarray:
@@ -33,41 +25,45 @@ def srgb_to_linear_u8(colors: np.ndarray, alpha: float = 1.0) -> np.ndarray:
     return np.round(rgba * 255.0).astype(np.uint8)
 
 
-def quantize_normals(normals: np.ndarray) -> np.ndarray:
-    """Unit normals (N,3) as normalised int8 padded to 4 bytes a vertex (N,4)."""
-    q = np.zeros((len(normals), 4), dtype=np.int8)
-    q[:, :3] = np.round(np.clip(normals, -1.0, 1.0) * 127.0).astype(np.int8)
-    return q
-
-
 def _pad(data: bytes, fill: bytes) -> bytes:
     return data + fill * (-len(data) % 4)
 
 
+def quantize_positions(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions (N,3) as normalised int16 (N,4) (padded to 8 bytes a vertex) with the translation (3,) and
+    scale (3,) that map them back: p = translation + scale * q / 32767."""
+    pos = np.asarray(vertices, dtype=np.float64)
+    lo, hi = (pos.min(axis=0), pos.max(axis=0)) if len(pos) else (np.zeros(3), np.zeros(3))
+    centre, half = (lo + hi) / 2.0, (hi - lo) / 2.0
+    half = np.where(half > 0, half, 1.0)  # a flat axis: any scale maps q = 0 back to the centre
+    q = np.zeros((len(pos), 4), dtype=np.int16)
+    q[:, :3] = np.clip(np.round((pos - centre) / half * 32767.0), -32767, 32767)
+    return q, centre, half
+
+
 def mesh_glb(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, opacity: float = 1.0) -> bytes:
     """GLB bytes of one mesh: vertices (N,3) metres, faces (M,3), sRGB colours (N,3) uint8."""
-    pos = np.ascontiguousarray(vertices, dtype=np.float32)
-    n = len(pos)
+    q, centre, half = quantize_positions(vertices)
+    n = len(q)
     index_type = np.uint16 if n < 65536 else np.uint32
     idx = np.ascontiguousarray(faces, dtype=index_type).reshape(-1)
-    normals = quantize_normals(vertex_normals(pos, faces))  # (N,4) int8
-    parts = [pos.tobytes(), normals.tobytes(), srgb_to_linear_u8(colors).tobytes(), idx.tobytes()]
+    parts = [q.tobytes(), srgb_to_linear_u8(colors).tobytes(), idx.tobytes()]
     views, offset = [], 0
     for i, blob in enumerate(parts):
         view = {"buffer": 0, "byteOffset": offset, "byteLength": len(blob)}
-        view |= {"target": _ELEMENT_ARRAY_BUFFER} if i == 3 else {"target": _ARRAY_BUFFER}
-        views.append(view | ({"byteStride": 4} if i == 1 else {}))
+        view |= {"target": _ELEMENT_ARRAY_BUFFER} if i == 2 else {"target": _ARRAY_BUFFER}
+        views.append(view | ({"byteStride": 8} if i == 0 else {}))
         offset += len(_pad(blob, b"\0"))
     accessors = [
-        {"bufferView": 0, "componentType": _FLOAT, "count": n, "type": "VEC3", **_bounds(pos)},
-        {"bufferView": 1, "componentType": _BYTE, "normalized": True, "count": n, "type": "VEC3"},
-        {"bufferView": 2, "componentType": _UBYTE, "normalized": True, "count": n, "type": "VEC4"},
+        {"bufferView": 0, "componentType": _SHORT, "normalized": True, "count": n, "type": "VEC3", **_bounds(q)},
+        {"bufferView": 1, "componentType": _UBYTE, "normalized": True, "count": n, "type": "VEC4"},
         {
-            "bufferView": 3,
+            "bufferView": 2,
             "componentType": _UINT16 if index_type is np.uint16 else _UINT32,
             "count": len(idx),
             "type": "SCALAR",
         },
+        {"componentType": _BYTE, "normalized": True, "count": n, "type": "VEC3"},  # zeros: the client recomputes
     ]
     material = {
         "pbrMetallicRoughness": {
@@ -78,20 +74,15 @@ def mesh_glb(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, opacit
         "alphaMode": "BLEND" if opacity < 1.0 else "OPAQUE",
         "doubleSided": True,
     }
+    primitive = {"attributes": {"POSITION": 0, "NORMAL": 3, "COLOR_0": 1}, "indices": 2, "material": 0}
     gltf = {
         "asset": {"version": "2.0", "generator": "h2viz"},
         "extensionsUsed": ["KHR_mesh_quantization"],
         "extensionsRequired": ["KHR_mesh_quantization"],
         "scene": 0,
         "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0}],
-        "meshes": [
-            {
-                "primitives": [
-                    {"attributes": {"POSITION": 0, "NORMAL": 1, "COLOR_0": 2}, "indices": 3, "material": 0}
-                ]
-            }
-        ],
+        "nodes": [{"mesh": 0, "translation": centre.tolist(), "scale": half.tolist()}],
+        "meshes": [{"primitives": [primitive]}],
         "materials": [material],
         "accessors": accessors,
         "bufferViews": views,
@@ -111,7 +102,8 @@ def mesh_glb(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, opacit
     )
 
 
-def _bounds(pos: np.ndarray) -> dict[str, list[float]]:
-    if len(pos) == 0:
-        return {"min": [0.0, 0.0, 0.0], "max": [0.0, 0.0, 0.0]}
-    return {"min": pos.min(axis=0).tolist(), "max": pos.max(axis=0).tolist()}
+def _bounds(q: np.ndarray) -> dict[str, list[int]]:
+    """POSITION's required min / max (of the stored int16 values)."""
+    if len(q) == 0:
+        return {"min": [0, 0, 0], "max": [0, 0, 0]}
+    return {"min": q[:, :3].min(axis=0).tolist(), "max": q[:, :3].max(axis=0).tolist()}

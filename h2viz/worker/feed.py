@@ -27,8 +27,8 @@ class WorkerSettings:
 
     realtime: bool = False  # map the newest frame, drop the older ones
     stride: int = 1  # use every k-th frame of the source
-    mesh_every: int = 5  # re-mesh at least every this many frames (0 = by time / at the end only)
-    mesh_update_hz: float = 2.0  # re-mesh at most this long (1/hz s) after a frame was mapped
+    mesh_every: int = 5  # with mesh_update_hz = 0: mesh every this many frames (0 = when idle and at the end)
+    mesh_update_hz: float = 2.0  # mesh after every frame; publish mesh changes at most this often (0 = no live)
     metrics_every: int = 20  # refresh ground-truth metrics every this many frames (0 = at the end)
     metrics_points: int = 20_000  # surface samples per mesh for the periodic metrics
 

@@ -1,6 +1,7 @@
 """MappingWorker: the one thread that owns the mapper (all torch state). It maps frames from the
 feed, serves Commands between frames (render bands are interleaved with mapping under a time
-budget) and publishes a frozen MapSnapshot into its LatestSlot after every change."""
+budget) and publishes a frozen MapSnapshot into its LatestSlot after every change. Mesh extraction
+runs beside it on a MeshThread, from a frozen copy of the field taken after each frame."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import threading
 import time
 from collections import deque
 from concurrent.futures import Future
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -22,6 +24,7 @@ from h2viz.types import Command, FrameStats, MapSnapshot, RgbdFrame
 from h2viz.worker import requests
 from h2viz.worker.commands import CommandServing
 from h2viz.worker.feed import END, FrameFeed, WorkerSettings, settings_from_config
+from h2viz.worker.mesh_thread import MeshThread
 from h2viz.worker.slot import LatestSlot
 
 if TYPE_CHECKING:
@@ -30,6 +33,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("h2viz.worker")
 MAX_CONSECUTIVE_FAILURES = 3
+REFRESH_S = 0.1  # each frame's mesh job also refreshes dirty voxels and stale chunks for up to this long
+IDLE_REFRESH_S = 1.0  # same while mapping is paused or finished (until every chunk is up to date)
 
 
 def rss_mb() -> float:
@@ -66,14 +71,18 @@ class MappingWorker(CommandServing):
         self._errors: list[str] = []
         self._failures = self._consecutive = self._unmeshed = self._version = 0
         self._mesh_dirty = False
-        self._last_mesh_t = time.monotonic()
         self._last_map_s = 0.0
+        self._publish_lock = threading.Lock()
+        self._chunks_out: dict = {}  # the chunks snapshots carry (changed only by the mesh thread's publish)
+        self._last_snap: MapSnapshot | None = None
+        self.meshing = MeshThread(self._publish_mesh, lambda: self.settings.mesh_update_hz)
         self._gt: Any = None
         self._fatal: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="h2viz-mapping", daemon=True)
 
     # -- public API (any thread) ---------------------------------------------------------------
     def start(self) -> MappingWorker:
+        self.meshing.start()
         self._thread.start()
         return self
 
@@ -82,6 +91,7 @@ class MappingWorker(CommandServing):
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(timeout=timeout_s)
+        self.meshing.stop(timeout_s)
         self._fail_pending(H2vizError("the mapping worker stopped before serving this request"))
 
     def submit(self, kind: str, **args: Any) -> Future[Any]:
@@ -95,8 +105,8 @@ class MappingWorker(CommandServing):
 
     @property
     def errors(self) -> tuple[str, ...]:
-        """Messages of every mapping failure so far, oldest first."""
-        return tuple(self._errors)
+        """Messages of every mapping or meshing failure so far (mapping ones first, each oldest first)."""
+        return tuple(self._errors + self.meshing.errors)
 
     @property
     def alive(self) -> bool:
@@ -124,9 +134,8 @@ class MappingWorker(CommandServing):
                 self._render_slices()
                 if not self._idle():
                     self._map_next()
-                elif self._mesh_due():
-                    self._remesh()
-                    self._publish()
+                elif not self.meshing.busy:  # bring stale chunks up to date while nothing maps
+                    self._submit_mesh(IDLE_REFRESH_S)
         except Exception as e:  # keep the process alive, make the failure visible
             log.exception("the mapping worker failed")
             self._fatal = e
@@ -144,8 +153,7 @@ class MappingWorker(CommandServing):
         if item is END:
             self._finished = True
             self._resolve_steps(None)
-            if self._unmeshed or self._mesh_dirty:
-                self._remesh()
+            self._remesh()
             if self._gt is not None:
                 self._refresh_metrics()
             self._publish()
@@ -170,7 +178,7 @@ class MappingWorker(CommandServing):
         if self._gt is not None and every > 0 and len(self._stats) % every == 0:
             self._refresh_metrics()
         if self._mesh_due():
-            self._remesh()
+            self._submit_mesh(REFRESH_S)
         self._resolve_steps(stats)
         self._publish()
 
@@ -192,52 +200,71 @@ class MappingWorker(CommandServing):
             self._feed.hold(self._paused and not self._steps)
 
     def _mesh_due(self) -> bool:
-        if self._unmeshed == 0 and not self._mesh_dirty:
-            return False
+        """After a frame: live updates (mesh_update_hz > 0) mesh every frame, else every mesh_every frames."""
         s = self.settings
-        if self._idle() or self._mesh_dirty or (s.mesh_every > 0 and self._unmeshed >= s.mesh_every):
-            return True
-        return s.mesh_update_hz > 0 and time.monotonic() - self._last_mesh_t >= 1.0 / s.mesh_update_hz
+        return s.mesh_update_hz > 0 or self._mesh_dirty or (s.mesh_every > 0 and self._unmeshed >= s.mesh_every)
+
+    def _submit_mesh(self, refresh_s: float, whole: bool = False) -> None:
+        """Freeze the field and hand the mesh thread a job (nothing when the mesh is up to date)."""
+        try:
+            job = self.mapper.mesh_job(refresh_s, whole)
+        except Exception as e:  # keep mapping; the next job retries the same chunks
+            log.exception("preparing a mesh update failed")
+            self._errors.append(f"mesh extraction failed: {type(e).__name__}: {e}")
+            return
+        self._unmeshed, self._mesh_dirty = 0, False
+        if job is not None:
+            self.meshing.submit(job)
 
     def _remesh(self) -> None:
-        try:
-            self.mapper.update_mesh()
-        except Exception as e:  # keep mapping; the next re-mesh retries the same chunks
-            log.exception("mesh extraction failed")
-            self._errors.append(f"mesh extraction failed: {type(e).__name__}: {e}")
-        self._unmeshed, self._mesh_dirty, self._last_mesh_t = 0, False, time.monotonic()
+        """Re-mesh every chunk from the field now and publish it (waits for the mesh thread)."""
+        self._submit_mesh(0.0, whole=True)
+        self.meshing.wait_idle()
 
     def _refresh_metrics(self) -> None:
+        """Ground-truth metrics of the mesh as it is now (while mapping: the live chunks, no re-meshing)."""
         from h2viz.eval.metrics import mesh_metrics, voxel_mask_fn
+        from h2viz.mapping.meshing import merge_chunks
 
         try:
-            if self._unmeshed or self._mesh_dirty:
-                self._remesh()
             mask = voxel_mask_fn(self.mapper.voxel_coords(), self.mapper.voxel_size_m)
             n, thr = self.settings.metrics_points, self.cfg.eval.threshold_m
-            self._metrics = mesh_metrics(self.mapper.mesh(), self._gt, n, thr, gt_mask_fn=mask)
+            mesh = merge_chunks(self.mapper.mesh_chunks())
+            self._metrics = mesh_metrics(mesh, self._gt, n, thr, gt_mask_fn=mask)
         except Exception as e:  # metrics are informative; mapping goes on
             log.warning("ground-truth metrics failed: %s", e)
 
     def _publish(self) -> None:
         m = self.mapper
-        self._version += 1
-        snap = MapSnapshot(
-            version=self._version,
-            frames_done=len(self._stats),
-            frames_total=self._feed.total(),
-            chunks=dict(m.mesh_chunks()),
-            voxel_size_m=float(m.voxel_size_m),
-            voxel_coords=np.asarray(m.voxel_coords(), dtype=np.int32).reshape(-1, 3),
-            keyframes=tuple(m.keyframe_infos()),
-            trajectory=np.asarray(self._poses, dtype=np.float64).reshape(-1, 4, 4),
-            current_frame=self._current,
-            stats=tuple(self._stats),
-            paused=self._paused,
-            finished=self._finished,
-            skipped=len(self.source.skipped) + self._failures,
-            dropped=self._feed.dropped,
-            metrics=dict(self._metrics),
-            memory_mb=rss_mb(),
-        )
-        self.slot.put(snap)
+        with self._publish_lock:
+            self._version += 1
+            snap = MapSnapshot(
+                version=self._version,
+                frames_done=len(self._stats),
+                frames_total=self._feed.total(),
+                chunks=self._chunks_out,
+                voxel_size_m=float(m.voxel_size_m),
+                voxel_coords=np.asarray(m.voxel_coords(), dtype=np.int32).reshape(-1, 3),
+                keyframes=tuple(m.keyframe_infos()),
+                trajectory=np.asarray(self._poses, dtype=np.float64).reshape(-1, 4, 4),
+                current_frame=self._current,
+                stats=tuple(self._stats),
+                paused=self._paused,
+                finished=self._finished,
+                skipped=len(self.source.skipped) + self._failures,
+                dropped=self._feed.dropped,
+                metrics=dict(self._metrics),
+                memory_mb=rss_mb(),
+            )
+            self._last_snap = snap
+            self.slot.put(snap)
+
+    def _publish_mesh(self) -> None:
+        """(mesh thread) The last snapshot again with the mapper's current chunks."""
+        with self._publish_lock:
+            self._chunks_out = self.mapper.mesh_chunks()
+            if self._last_snap is None:
+                return
+            self._version += 1
+            self._last_snap = replace(self._last_snap, version=self._version, chunks=self._chunks_out)
+            self.slot.put(self._last_snap)

@@ -45,9 +45,7 @@ def settle(future: Future[Any], value: Any = None, error: BaseException | None =
         pass
 
 
-def _bands(
-    mapper: Mapper, K: np.ndarray, T: np.ndarray, height: int, width: int, mode: str, out: list
-) -> Any:
+def _bands(mapper: Mapper, K: np.ndarray, T: np.ndarray, height: int, width: int, mode: str, out: list) -> Any:
     """Render one image in row bands of about RENDER_BAND_PIXELS, appending each band to `out`;
     yields the seconds each band took."""
     rows = max(1, RENDER_BAND_PIXELS // width)
@@ -96,9 +94,7 @@ def render_bands(mapper: Mapper, args: dict[str, Any]) -> Generator[None, None, 
             for seconds in _bands(mapper, scaled_intrinsics(K, s), T_world_camera, h, w, "depth", depths):
                 spent += seconds
                 yield
-            depth_m = np.repeat(np.repeat(np.concatenate(depths, axis=0), s, axis=0), s, axis=1)[
-                :height, :width
-            ]
+            depth_m = np.repeat(np.repeat(np.concatenate(depths, axis=0), s, axis=0), s, axis=1)[:height, :width]
     return RenderedView(image, depth_m, mode, spent)
 
 

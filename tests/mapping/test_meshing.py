@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -22,10 +23,11 @@ Fn = Callable[[np.ndarray], np.ndarray]
 
 
 def sphere_sdf(centre: np.ndarray, r: float = SPHERE_R) -> Fn:
-    return lambda p: (np.linalg.norm(p - centre, axis=1) - r).astype(np.float32)
+    """The sphere's SDF (N,) at points (N,3); like the mapper's field it also takes the points' voxel ids."""
+    return lambda p, voxel=None: (np.linalg.norm(p - centre, axis=1) - r).astype(np.float32)
 
 
-def plane_sdf(p: np.ndarray) -> np.ndarray:
+def plane_sdf(p: np.ndarray, voxel: np.ndarray | None = None) -> np.ndarray:
     return (p.astype(np.float64) @ PLANE_N - PLANE_D).astype(np.float32)
 
 
@@ -98,9 +100,7 @@ def test_sphere_is_accurate_watertight_welded_and_outward(centre: np.ndarray) ->
     outward = np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles_center - centre)
     assert (outward > 0).all()
     assert mesh.volume == pytest.approx(4 / 3 * np.pi * SPHERE_R**3, rel=5e-3)
-    np.testing.assert_array_equal(
-        mesh.visual.vertex_colors[:, :3], position_color(mesh.vertices.astype(np.float32))
-    )
+    np.testing.assert_array_equal(mesh.visual.vertex_colors[:, :3], position_color(mesh.vertices.astype(np.float32)))
     for chunk in chunks.values():  # within a chunk, vertices are unique and colours belong to them
         assert unique_rows(chunk.vertices) == len(chunk.vertices)
         assert chunk.faces.dtype == np.int32 and chunk.colors.dtype == np.uint8 and chunk.version == 1
@@ -120,7 +120,7 @@ def test_only_corners_of_allocated_voxels_are_sampled_once() -> None:
     voxels = np.unique(rng.integers(-6, 6, size=(40, 3)), axis=0)
     seen: list[np.ndarray] = []
 
-    def counting_sdf(p: np.ndarray) -> np.ndarray:
+    def counting_sdf(p: np.ndarray, voxel: np.ndarray) -> np.ndarray:
         seen.append(p.copy())
         return plane_sdf(p)
 
@@ -182,7 +182,7 @@ def test_dirty_chunk_update_replaces_only_that_chunk() -> None:
     q, key = bump_inside_one_chunk(centre, 2 * VS)
     assert key in before
 
-    def bumped(p: np.ndarray) -> np.ndarray:
+    def bumped(p: np.ndarray, voxel: np.ndarray | None = None) -> np.ndarray:
         w = np.clip(1.0 - np.linalg.norm(p - q, axis=1) / 0.04, 0.0, None)
         return (sdf(p) - 0.01 * w).astype(np.float32)
 
@@ -239,7 +239,7 @@ def test_bad_callbacks_and_inputs_raise_meshing_errors() -> None:
     voxels = plane_voxels()
     mesher = ChunkedMesher(VS, 4, 4)
     with pytest.raises(MeshingError, match="sdf_fn"):
-        mesher.update(voxels, None, lambda p: plane_sdf(p)[:, None].repeat(2, 1), position_color, 1)
+        mesher.update(voxels, None, lambda p, v: plane_sdf(p)[:, None].repeat(2, 1), position_color, 1)
     with pytest.raises(MeshingError, match="uint8"):
         mesher.update(voxels, None, plane_sdf, lambda p: position_color(p) / 255.0, 1)
     with pytest.raises(MeshingError, match="integer"):
@@ -247,7 +247,7 @@ def test_bad_callbacks_and_inputs_raise_meshing_errors() -> None:
 
 
 def test_non_finite_sdf_values_leave_cells_out(caplog: pytest.LogCaptureFixture) -> None:
-    def partial(p: np.ndarray) -> np.ndarray:
+    def partial(p: np.ndarray, voxel: np.ndarray) -> np.ndarray:
         s = plane_sdf(p)
         s[p[:, 0] > 0.3] = np.nan
         return s
@@ -279,3 +279,191 @@ def test_export_round_trips(tmp_path: Path) -> None:
     assert isinstance(err.value, H2vizError)
     with pytest.raises(MeshingError, match="empty"):
         export_mesh(merge_chunks({}), tmp_path / "empty.ply")
+
+
+# ------------------------------------------------------------------------------- incremental updates
+
+
+class Counting:
+    """An SDF callback that records the lattice points (global indices) and voxel ids it was asked for."""
+
+    def __init__(self, sdf: Fn, resolution: int) -> None:
+        self.sdf, self.resolution = sdf, resolution
+        self.points: list[np.ndarray] = []
+        self.ids: list[np.ndarray] = []
+
+    def __call__(self, p: np.ndarray, voxel: np.ndarray) -> np.ndarray:
+        self.points.append(np.rint(p / (VS / self.resolution)).astype(np.int64))
+        self.ids.append(np.asarray(voxel).copy())
+        return self.sdf(p)
+
+    def seen(self) -> set[tuple[int, ...]]:
+        return {tuple(q) for q in np.concatenate(self.points).tolist()} if self.points else set()
+
+
+def lattice_points(voxels: np.ndarray, resolution: int) -> set[tuple[int, ...]]:
+    """Global lattice indices of every corner of every cell of the voxels (V,3)."""
+    steps = np.array(list(itertools.product(range(resolution + 1), repeat=3)))  # (K,3)
+    return {tuple(q) for q in (voxels[:, None] * resolution + steps[None]).reshape(-1, 3).tolist()}
+
+
+def sorted_vertices(chunks: dict) -> np.ndarray:
+    v = merge_chunks(chunks).vertices
+    return v[np.lexsort(v.T[::-1])]
+
+
+def test_sdf_fn_gets_the_id_of_a_voxel_holding_each_point() -> None:
+    voxels = plane_voxels()
+    ids = 1000 + 7 * np.arange(len(voxels))
+    counting = Counting(plane_sdf, 4)
+    ChunkedMesher(VS, 4, 4).update(voxels, None, counting, position_color, 1, voxel_ids=ids)
+    points, got = np.concatenate(counting.points), np.concatenate(counting.ids)
+    owner = voxels[(got - 1000) // 7]  # (N,3) voxel coordinates of the ids handed over
+    assert np.isin(got, ids).all()
+    assert ((points >= owner * 4) & (points <= owner * 4 + 4)).all()  # the point lies in that voxel's box
+
+
+def test_new_voxels_evaluate_only_their_new_points_and_match_a_fresh_mesh() -> None:
+    voxels = plane_voxels()
+    later = (voxels[:, 0] >= 3) & (voxels[:, 1] >= -2)  # a block of voxels added by a later frame
+    mesher = ChunkedMesher(VS, 4, 4)
+    before = mesher.update(voxels[~later], [], plane_sdf, position_color, 1)
+    counting = Counting(plane_sdf, 4)
+    coloured: list[np.ndarray] = []
+    color_fn = lambda p: (coloured.append(p), position_color(p))[1]  # noqa: E731
+    after = mesher.update(voxels, [], counting, color_fn, 2)
+    assert counting.seen() == lattice_points(voxels[later], 4) - lattice_points(voxels[~later], 4)
+    merged = merge_chunks(after)
+    np.testing.assert_array_equal(
+        merged.visual.vertex_colors[:, :3], position_color(merged.vertices.astype(np.float32))
+    )
+    old_vertices = {tuple(v) for c in before.values() for v in c.vertices.tolist()}
+    assert not any(tuple(v) in old_vertices for v in np.concatenate(coloured).tolist())  # only new vertices
+    changed = mesher.chunks_of(voxels[later])
+    assert {k for k, c in after.items() if c is not before.get(k)} == changed & set(after)
+    fresh = ChunkedMesher(VS, 4, 4).update(voxels, None, plane_sdf, position_color, 1)
+    np.testing.assert_array_equal(sorted_vertices(after), sorted_vertices(fresh))
+    assert len(merge_chunks(after).faces) == len(merge_chunks(fresh).faces)
+
+
+def bumped_sdf(centre: np.ndarray, q: np.ndarray) -> Fn:
+    sdf = sphere_sdf(centre)
+    return lambda p, voxel=None: (sdf(p) - 0.01 * np.clip(1 - np.linalg.norm(p - q, axis=1) / 0.04, 0, None)).astype(
+        np.float32
+    )
+
+
+def test_dirty_voxels_are_refreshed_within_the_budget_only() -> None:
+    centre = np.array([0.013, -0.021, 0.034])
+    voxels = sphere_voxels(centre)
+    q, key = bump_inside_one_chunk(centre, 2 * VS)
+    mesher = ChunkedMesher(VS, 8, 2)
+    before = mesher.update(voxels, None, sphere_sdf(centre), position_color, 1)
+    dirty = np.linalg.norm((voxels + 0.5) * VS - q, axis=1) < 0.13  # every voxel the 4 cm bump reaches
+    bumped = Counting(bumped_sdf(centre, q), 8)
+    same = mesher.update(voxels, [], bumped, position_color, 2, dirty_voxels=dirty, refresh_s=0.0)
+    assert bumped.points == [] and all(same[k] is before[k] for k in before)  # optional work, no budget
+    after = mesher.update(voxels, [], bumped, position_color, 3, dirty_voxels=dirty, refresh_s=60.0)
+    assert bumped.seen() == lattice_points(voxels[dirty], 8)
+    assert {k for k in after if after[k] is not before[k]} == mesher.chunks_of(voxels[dirty]) & set(after)
+    fresh = ChunkedMesher(VS, 8, 2).update(voxels, None, bumped_sdf(centre, q), position_color, 1)
+    np.testing.assert_array_equal(sorted_vertices(after), sorted_vertices(fresh))  # the bump lies inside
+
+
+def test_small_passes_weld_exactly(monkeypatch: pytest.MonkeyPatch) -> None:
+    import h2viz.mapping.mesh_passes as passes
+
+    centre = np.array([0.013, -0.021, 0.034])
+    one_pass = ChunkedMesher(VS, 8, 2).update(sphere_voxels(centre), None, sphere_sdf(centre), position_color, 1)
+    monkeypatch.setattr(passes, "POINTS_PER_PASS", 2000)  # about one chunk a pass
+    seen: list[list] = []
+    mesher = ChunkedMesher(VS, 8, 2)
+    many = mesher.update(
+        sphere_voxels(centre), None, sphere_sdf(centre), position_color, 1, on_pass=lambda k, r: seen.append(k)
+    )
+    assert len(seen) > 20
+    mesh = merge_chunks(many)
+    assert mesh.is_watertight
+    np.testing.assert_array_equal(sorted_vertices(many), sorted_vertices(one_pass))
+
+
+def edges_on_plane_x(mesh: trimesh.Trimesh, x_m: float) -> int:
+    """Boundary edges lying in the plane x = x_m (where two chunks meet)."""
+    edges = boundary_edges(mesh)
+    return int(np.all(np.abs(mesh.vertices[edges][:, :, 0] - x_m) < 1e-6, axis=1).sum())
+
+
+def test_chunks_meshed_from_different_fields_agree_once_meshed_together() -> None:
+    voxels = plane_voxels()
+    keys = np.floor_divide(voxels, 4)
+    mesher = ChunkedMesher(VS, 4, 4)
+    mesher.update(voxels, None, plane_sdf, position_color, 1)
+    a = next(k for k in sorted(mesher.chunks) if (k[0] + 1, k[1], k[2]) in mesher.chunks)
+    b = (a[0] + 1, a[1], a[2])
+    face_x = (a[0] + 1) * 4 * VS
+    pair = lambda: merge_chunks({k: mesher.chunks[k] for k in (a, b)})  # noqa: E731
+    assert edges_on_plane_x(pair(), face_x) == 0  # one field: welded
+    shifted = lambda p, voxel=None: (plane_sdf(p) + 0.003).astype(np.float32)  # noqa: E731
+    mesher.update(voxels, [a], shifted, position_color, 2)  # chunk A alone sees a new field
+    assert edges_on_plane_x(pair(), face_x) > 0  # a hairline crack until B is re-meshed too
+    far = ((keys == a).all(axis=1) & (voxels[:, 0] == 4 * a[0])) | (
+        (keys == b).all(axis=1) & (voxels[:, 0] == 4 * b[0] + 3)
+    )
+    counting = Counting(shifted, 4)
+    mesher.update(voxels, [], counting, position_color, 3, dirty_voxels=far, refresh_s=60.0)
+    assert any(abs(q[0] - (a[0] + 1) * 16) == 0 for q in counting.seen())  # the common face was re-evaluated
+    assert edges_on_plane_x(pair(), face_x) == 0  # their caches disagreed there, so both took fresh values
+
+
+def test_stale_chunks_are_refreshed_oldest_first_until_stopped(monkeypatch: pytest.MonkeyPatch) -> None:
+    import h2viz.mapping.mesh_passes as passes
+
+    monkeypatch.setattr(passes, "REFRESH_POINTS_PER_PASS", 2000)  # a few chunks a pass
+    voxels = plane_voxels()
+    mesher = ChunkedMesher(VS, 4, 4)
+    mesher.update(voxels, None, plane_sdf, position_color, 1, field_version=1)
+    n = len(mesher.chunks_of(voxels))
+    assert mesher.stale(1) == 0 and mesher.stale(2) == n
+    mesher.update(voxels, sorted(mesher.chunks_of(voxels))[:3], plane_sdf, position_color, 2, field_version=2)
+    assert mesher.stale(2) == n - 3
+    passes: list[list] = []
+    mesher.update(
+        voxels, [], plane_sdf, position_color, 3, field_version=3, refresh_s=60.0, on_pass=lambda k, r: passes.append(k)
+    )
+    order = [k for p in passes for k in p]
+    assert set(order[-3:]) == set(sorted(mesher.chunks_of(voxels))[:3])  # meshed at version 2: refreshed last
+    assert mesher.stale(3) == 0
+    calls = []
+    mesher.update(
+        voxels,
+        [],
+        plane_sdf,
+        position_color,
+        4,
+        field_version=4,
+        refresh_s=60.0,
+        stop=lambda: calls.append(1) or len(calls) > 1,
+    )
+    assert 0 < mesher.stale(4) < n  # one pass, then stopped
+
+
+def test_other_threads_always_read_a_complete_chunk_dict() -> None:
+    import threading
+
+    centre = np.array([0.013, -0.021, 0.034])
+    voxels = sphere_voxels(centre)
+    mesher = ChunkedMesher(VS, 8, 2)
+    first = mesher.update(voxels, None, sphere_sdf(centre), position_color, 1)
+    slow = lambda p, voxel=None: (time.sleep(0.002), sphere_sdf(centre)(p))[1]  # noqa: E731
+    done = threading.Event()
+    worker = threading.Thread(
+        target=lambda: (mesher.update(voxels, None, slow, position_color, 2), done.set()), daemon=True
+    )
+    worker.start()
+    seen = []
+    while not done.is_set():
+        chunks = mesher.chunks
+        assert set(chunks) == set(first)  # never a chunk missing while it is re-meshed
+        seen.append(sum(c.version == 2 for c in chunks.values()))
+    worker.join()
+    assert seen == sorted(seen) and max(seen) <= len(first)

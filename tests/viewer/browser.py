@@ -62,9 +62,7 @@ class WireRecorder:
         return [m for t, m in self.messages if m.type == kind and t >= since]
 
 
-def wait_until(
-    page: Any, predicate: Callable[[], Any], timeout_s: float = 60.0, what: str = "condition"
-) -> Any:
+def wait_until(page: Any, predicate: Callable[[], Any], timeout_s: float = 60.0, what: str = "condition") -> Any:
     """Poll `predicate` while letting Playwright deliver page events; fail after `timeout_s`."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

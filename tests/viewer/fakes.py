@@ -120,9 +120,7 @@ class FakeMapper:
         self._version += 1
         v, u = np.nonzero(frame.depth_m[::2, ::2] > 0)
         z = frame.depth_m[::2, ::2][v, u]
-        p = np.stack(
-            [(2 * u - frame.K[0, 2]) / frame.K[0, 0] * z, (2 * v - frame.K[1, 2]) / frame.K[1, 1] * z, z], 1
-        )
+        p = np.stack([(2 * u - frame.K[0, 2]) / frame.K[0, 0] * z, (2 * v - frame.K[1, 2]) / frame.K[1, 1] * z, z], 1)
         pw = p @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
         cells = np.floor(pw / self.voxel_size_m).astype(np.int32)
         merged = np.unique(np.concatenate([self._voxels, cells]), axis=0)
@@ -149,9 +147,7 @@ class FakeMapper:
                 )
             )
         sel = self._version % max(1, len(self._keyframes))
-        states = [
-            KeyframeState.COVERED if i < sel else KeyframeState.UNCOVERED for i in range(len(self._keyframes))
-        ]
+        states = [KeyframeState.COVERED if i < sel else KeyframeState.UNCOVERED for i in range(len(self._keyframes))]
         if self._keyframes:
             states[sel] = KeyframeState.SELECTED
         self._keyframes = [
@@ -161,18 +157,22 @@ class FakeMapper:
             for kf, s in zip(self._keyframes, states, strict=True)
         ]
 
-    def update_mesh(self) -> None:
-        self.mesh_calls += 1
+    def mesh_job(self, refresh_s: float = 0.0, whole: bool = False) -> FakeMeshJob | None:
+        """The dirty chunks' voxels, frozen now (None when nothing changed), meshed by `run` on any thread."""
+        if not self._dirty:
+            return None
         chunk_of = self._voxels // self.chunk_voxels
-        for key in self._dirty:
-            vox = self._voxels[np.all(chunk_of == np.array(key), axis=1)]
-            verts, faces = cube_mesh(vox, self.voxel_size_m)
-            colors = room_color(verts.astype(np.float64))
-            self._chunks[key] = MeshChunk(key, verts, faces, colors, self._version)
-        self._dirty.clear()
+        parts = {key: self._voxels[np.all(chunk_of == np.array(key), axis=1)] for key in sorted(self._dirty)}
+        self._dirty = set()
+        return FakeMeshJob(self, parts, self._version)
+
+    def update_mesh(self) -> None:
+        job = self.mesh_job()
+        if job is not None:
+            job.run()
 
     def mesh_chunks(self) -> dict[tuple[int, int, int], MeshChunk]:
-        return dict(self._chunks)
+        return dict(self._chunks)  # the dict is replaced whole by mesh jobs, never changed in place
 
     def voxel_coords(self) -> np.ndarray:
         return self._voxels.copy()
@@ -183,9 +183,7 @@ class FakeMapper:
     def keyframe_infos(self) -> tuple[KeyframeInfo, ...]:
         return tuple(self._keyframes)
 
-    def render(
-        self, K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int, mode: str
-    ) -> np.ndarray:
+    def render(self, K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int, mode: str) -> np.ndarray:
         self.rendered.append((height, width, mode))
         depth, hits, normals = trace_room(K, T_world_camera, height, width)
         known = _rows_in(np.floor(hits.reshape(-1, 3) / self.voxel_size_m).astype(np.int32), self._voxels)
@@ -198,8 +196,7 @@ class FakeMapper:
 
     def mesh(self) -> trimesh.Trimesh:
         parts = [
-            trimesh.Trimesh(c.vertices, c.faces, vertex_colors=c.colors, process=False)
-            for c in self._chunks.values()
+            trimesh.Trimesh(c.vertices, c.faces, vertex_colors=c.colors, process=False) for c in self._chunks.values()
         ]
         return trimesh.util.concatenate(parts) if parts else trimesh.Trimesh()
 
@@ -208,6 +205,27 @@ class FakeMapper:
 
     def save_checkpoint(self, path: Path) -> None:
         np.savez(path, voxels=self._voxels)
+
+
+class FakeMeshJob:
+    """A FakeMapper mesh job: one cube per voxel of the dirty chunks, colours from `room_color`."""
+
+    def __init__(self, mapper: FakeMapper, parts: dict[tuple[int, int, int], np.ndarray], version: int) -> None:
+        self.mapper, self.parts, self.version, self.field_version = mapper, parts, version, version
+
+    def run(self, stop: object = None, on_pass: object = None) -> None:
+        m = self.mapper
+        m.mesh_calls += 1
+        chunks = dict(m._chunks)
+        for key, vox in self.parts.items():
+            verts, faces = cube_mesh(vox, m.voxel_size_m)
+            chunks[key] = MeshChunk(key, verts, faces, room_color(verts.astype(np.float64)), self.version)
+        m._chunks = chunks
+        if callable(on_pass):
+            on_pass(list(self.parts), True)
+
+    def after(self, older: FakeMeshJob) -> FakeMeshJob:
+        return FakeMeshJob(self.mapper, {**older.parts, **self.parts}, self.version)
 
 
 def _rows_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -285,9 +303,7 @@ def recording_mapper(cfg: MappingConfig, delay_s: float = 0.0):  # noqa: ANN201 
             time.sleep(delay_s)
             return super().integrate(frame)
 
-        def render(
-            self, K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int, mode: str = "rgb"
-        ):  # noqa: ANN202
+        def render(self, K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int, mode: str = "rgb"):  # noqa: ANN202
             self.rendered.append((height, width, mode))
             return super().render(K, T_world_camera, height, width, mode)
 

@@ -61,16 +61,13 @@ def test_scene_reaches_the_browser_and_grows(live: Live) -> None:
     page, wire = live.page, live.wire
     first = wait_until(page, lambda: len(wire.names("GlbMessage", "/mesh/")), what="mesh chunks in the page")
     wait_until(page, lambda: len(wire.names("GlbMessage", "/mesh/")) > first, what="more mesh chunks")
-    wait_until(
-        page, lambda: len(wire.names("CameraFrustumMessage", "/keyframes/")) >= 2, what="keyframe frustums"
-    )
+    wait_until(page, lambda: len(wire.names("CameraFrustumMessage", "/keyframes/")) >= 2, what="keyframe frustums")
     assert wire.names("LineSegmentsMessage", "/trajectory/") == {"/trajectory/path"}
-    assert live.dashboard.client_count() == 1
+    # viser streams the scene to a page before it lists the page among its clients
+    wait_until(page, lambda: live.dashboard.client_count() == 1, what="the page counted as a client")
     page.get_by_role("tab", name="View").click()
     page.get_by_role("checkbox", name="Octree leaves").click()
-    blocks = wait_until(
-        page, lambda: len(wire.names("LineSegmentsMessage", "/octree/l0/")), what="octree blocks"
-    )
+    blocks = wait_until(page, lambda: len(wire.names("LineSegmentsMessage", "/octree/l0/")), what="octree blocks")
     voxels = len(live.worker.slot.get()[1].voxel_coords)
     wait_until(page, lambda: len(live.worker.slot.get()[1].voxel_coords) > voxels, what="new voxels")
     sent = len(wire.of_type("LineSegmentsMessage"))
@@ -104,9 +101,7 @@ def test_camera_motion_brings_a_rendered_background_with_depth(live: Live) -> No
     page.mouse.down()
     page.mouse.move(330, 360, steps=4)
     page.mouse.up()
-    with_depth = lambda: [
-        m for m in wire.of_type("BackgroundImageMessage", since=start) if m.fields.get("depth_data")
-    ]
+    with_depth = lambda: [m for m in wire.of_type("BackgroundImageMessage", since=start) if m.fields.get("depth_data")]
     wait_until(page, with_depth, what="a background image with depth")
     widths = {w for _, w, _ in live.mapper.rendered}
     assert {60, 240} <= widths  # a quick low-resolution view, then the refined one
@@ -125,9 +120,7 @@ def test_export_downloads_a_valid_mesh(live: Live, tmp_path: Path) -> None:
     assert path.suffix == ".ply"
     mesh = trimesh.load(path, force="mesh", process=False)
     assert len(mesh.faces) > 0 and len(mesh.vertices) > 0
-    assert (mesh.bounds[0] > [-2.5, -2.0, -0.5]).all() and (
-        mesh.bounds[1] < [2.5, 2.0, 3.0]
-    ).all()  # the room
+    assert (mesh.bounds[0] > [-2.5, -2.0, -0.5]).all() and (mesh.bounds[1] < [2.5, 2.0, 3.0]).all()  # the room
     page.get_by_role("tab", name="Mapping").click()
 
 
@@ -138,12 +131,9 @@ def test_second_browser_sees_the_same_scene(live: Live) -> None:
     try:
         wait_until(page2, lambda: live.dashboard.client_count() == 2, what="two connected browsers")
         drawn = {
-            f"/mesh/c_{'_'.join(str(k).replace('-', 'm') for k in key)}"
-            for key in live.dashboard.layers.mesh.handles
+            f"/mesh/c_{'_'.join(str(k).replace('-', 'm') for k in key)}" for key in live.dashboard.layers.mesh.handles
         }
-        wait_until(
-            page2, lambda: drawn <= wire2.names("GlbMessage", "/mesh/"), what="the same chunks in page 2"
-        )
+        wait_until(page2, lambda: drawn <= wire2.names("GlbMessage", "/mesh/"), what="the same chunks in page 2")
         keyframes = live.wire.names("CameraFrustumMessage", "/keyframes/")
         assert keyframes <= wire2.names("CameraFrustumMessage", "/keyframes/")
         assert page2.get_by_role("button", name="Pause").count() == 1

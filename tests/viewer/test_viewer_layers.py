@@ -12,6 +12,7 @@ import viser
 from h2viz.geometry import look_at
 from h2viz.types import KeyframeInfo, KeyframeState
 from h2viz.viewer.diff import group_cells
+from h2viz.viewer.glb import mesh_glb
 from h2viz.viewer.layers import (
     STATE_COLORS,
     CameraLayer,
@@ -59,8 +60,9 @@ def test_mesh_layer_opacity_resends_and_hidden_layer_catches_up(server: viser.Vi
     a = chunk((5, 0, 0))
     layer.update(snapshot(chunks={a.key: a}))
     sent = layer.bytes_sent
+    assert sent == len(mesh_glb(a.vertices, a.faces, a.colors))
     layer.set_opacity(0.4)
-    assert layer.bytes_sent == 2 * sent  # the same chunk again, with the translucent material
+    assert layer.bytes_sent == sent + len(mesh_glb(a.vertices, a.faces, a.colors, 0.4))  # again, translucent
     layer.set_enabled(False)
     b = chunk((6, 0, 0))
     layer.update(snapshot(chunks={a.key: a, b.key: b}))

@@ -95,23 +95,38 @@ def _accessor(gltf: dict, blob: bytes, i: int, dtype: type, width: int) -> np.nd
     return raw.reshape(-1, stride)[:, :width]
 
 
-def test_glb_round_trips_geometry_normals_and_linear_colours() -> None:
+def test_glb_round_trips_quantised_geometry_and_linear_colours() -> None:
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
     colors = np.tile(np.array([[0, 128, 255]], np.uint8), (len(sphere.vertices), 1))
-    data = mesh_glb(sphere.vertices + 2.0, sphere.faces, colors, opacity=0.5)
+    data = mesh_glb(sphere.vertices + [2.0, -3.0, 0.25], sphere.faces, colors, opacity=0.5)
     gltf, blob = _glb_parts(data)
     assert gltf["extensionsRequired"] == ["KHR_mesh_quantization"]
-    np.testing.assert_allclose(_accessor(gltf, blob, 0, np.float32, 3), sphere.vertices + 2.0, atol=1e-6)
-    normals = _accessor(gltf, blob, 1, np.int8, 3) / 127.0
-    radial = sphere.vertices / np.linalg.norm(sphere.vertices, axis=1, keepdims=True)
-    assert np.min(np.sum(normals * radial, axis=1)) > 0.98  # outward and smooth
-    rgba = _accessor(gltf, blob, 2, np.uint8, 4)[0]
+    node = gltf["nodes"][0]
+    q = _accessor(gltf, blob, 0, np.int16, 3)
+    assert gltf["accessors"][0]["normalized"] and gltf["accessors"][0]["min"] == q.min(axis=0).tolist()
+    decoded = np.asarray(node["translation"]) + np.asarray(node["scale"]) * q / 32767.0
+    np.testing.assert_allclose(decoded, sphere.vertices + [2.0, -3.0, 0.25], atol=0.5 / 32767)  # 15 um steps
+    primitive = gltf["meshes"][0]["primitives"][0]
+    normal = gltf["accessors"][primitive["attributes"]["NORMAL"]]
+    assert "bufferView" not in normal and normal["count"] == len(sphere.vertices)  # zeros, recomputed by viser
+    rgba = _accessor(gltf, blob, 1, np.uint8, 4)[0]
     np.testing.assert_array_equal(rgba, [0, 55, 255, 255])  # sRGB 128 -> linear 0.2159 -> 55 / 255
-    assert gltf["accessors"][3]["componentType"] == 5123  # 16-bit indices for a small mesh
-    np.testing.assert_array_equal(_accessor(gltf, blob, 3, np.uint16, 3), sphere.faces)
+    assert gltf["accessors"][2]["componentType"] == 5123  # 16-bit indices for a small mesh
+    np.testing.assert_array_equal(_accessor(gltf, blob, 2, np.uint16, 3), sphere.faces)
     assert gltf["materials"][0]["alphaMode"] == "BLEND"
     assert gltf["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"][3] == 0.5
-    assert len(data) < len(sphere.vertices) * 20 + len(sphere.faces) * 6 + 2000  # ~20 B / vertex, 6 B / face
+    assert len(data) < len(sphere.vertices) * 12 + len(sphere.faces) * 6 + 1500  # 12 B / vertex, 6 B / face
+
+
+def test_glb_of_a_flat_chunk_keeps_its_plane() -> None:
+    vertices = np.array([[0.0, 0.0, 1.5], [0.8, 0.0, 1.5], [0.0, 0.8, 1.5]], np.float32)
+    gltf, blob = _glb_parts(mesh_glb(vertices, np.array([[0, 1, 2]]), np.zeros((3, 3), np.uint8)))
+    node = gltf["nodes"][0]
+    decoded = (
+        np.asarray(node["translation"]) + np.asarray(node["scale"]) * _accessor(gltf, blob, 0, np.int16, 3) / 32767
+    )
+    np.testing.assert_allclose(decoded, vertices, atol=1e-5)
+    assert node["scale"][2] == 1.0  # no zero scale on the flat axis
 
 
 def test_srgb_to_linear_end_points() -> None:
@@ -132,9 +147,7 @@ def test_viser_pose_and_intrinsics_round_trip() -> None:
 def test_client_view_matches_the_browser_camera() -> None:
     T = look_at(np.array([0.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]))
     wxyz, position = wxyz_position(T)
-    camera = SimpleNamespace(
-        wxyz=wxyz, position=position, fov=np.radians(50), image_width=1000, image_height=500
-    )
+    camera = SimpleNamespace(wxyz=wxyz, position=position, fov=np.radians(50), image_width=1000, image_height=500)
     view = client_view(camera, 200)
     assert view is not None and (view.width, view.height) == (200, 100)
     uv, z = project(np.array([[3.0, 0.0, 1.0]]), view.K, view.T_world_camera)  # on the optical axis

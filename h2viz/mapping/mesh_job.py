@@ -1,0 +1,191 @@
+"""Mesh extraction that can run beside mapping: a frozen copy of the field and a job that meshes with it.
+
+The mapping thread builds a MeshJob in a few milliseconds (it copies the hash tables, decoders and corner
+priors, and takes the voxel lists); the job may then run on any thread while mapping goes on training the
+live field. Each lattice point's voxel comes from the mesher, so no voxel lookup is needed.
+
+Compiled code is cached next to this file (numba's cache); without a writable cache it compiles per process.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numba
+import numpy as np
+import torch
+
+from h2viz.mapping.field import HybridField
+from h2viz.mapping.meshing import ChunkedMesher, ChunkKey
+from h2viz.types import MeshChunk
+
+FIELD_BATCH = 1 << 16  # points per network call (the activations stay in cache)
+
+
+def _jit(fn: Callable[..., None]) -> Callable[..., None]:
+    """numba.njit with the on-disk cache; compiled per process when no cache directory is writable."""
+    try:
+        return numba.njit(cache=True)(fn)
+    except RuntimeError:
+        return numba.njit(cache=False)(fn)
+
+
+@_jit
+def _prior_kernel(
+    points: np.ndarray,
+    voxel: np.ndarray,
+    priors: np.ndarray,
+    corner_ids: np.ndarray,
+    origin: np.ndarray,
+    voxel_size: np.float32,
+    out: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """out (N,) <- trilinear blend of the 8 corner priors of each point's voxel, as HybridField.prior_sdf."""
+    one, zero = np.float32(1.0), np.float32(0.0)
+    for i in range(points.shape[0]):
+        v = voxel[i]
+        x = min(max((points[i, 0] - origin[v, 0]) / voxel_size, zero), one)
+        y = min(max((points[i, 1] - origin[v, 1]) / voxel_size, zero), one)
+        z = min(max((points[i, 2] - origin[v, 2]) / voxel_size, zero), one)
+        c = corner_ids[v]
+        x00 = priors[c[0]] * (one - x) + priors[c[4]] * x  # corner 4*dx + 2*dy + dz
+        x01 = priors[c[1]] * (one - x) + priors[c[5]] * x
+        x10 = priors[c[2]] * (one - x) + priors[c[6]] * x
+        x11 = priors[c[3]] * (one - x) + priors[c[7]] * x
+        y0 = x00 * (one - y) + x10 * y
+        y1 = x01 * (one - y) + x11 * y
+        out[i] = y0 * (one - z) + y1 * z
+
+
+@_jit
+def _residual_kernel(
+    feats: np.ndarray, w1: np.ndarray, b1: np.ndarray, w2: np.ndarray, b2: np.float32, out: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    """out (N,) += w2 . relu(w1 @ f + b1) + b2 for features feats (F,N) (one row per feature), w1 (H,F).
+
+    Hidden unit by hidden unit over all points, so that every inner loop runs elementwise over the points.
+    """
+    n = feats.shape[1]
+    acc = np.full(n, b2, dtype=np.float32)
+    h = np.empty(n, dtype=np.float32)
+    for j in range(w1.shape[0]):
+        for i in range(n):
+            h[i] = b1[j]
+        for f in range(w1.shape[1]):
+            w = w1[j, f]
+            for i in range(n):
+                h[i] += w * feats[f, i]
+        w = w2[j]
+        for i in range(n):
+            if h[i] > 0:
+                acc[i] += w * h[i]
+    for i in range(n):
+        out[i] += acc[i]
+
+
+class FrozenField:
+    """A copy of a HybridField's parameters at one moment; evaluating it never touches the live field.
+
+    sdf = trilinear(corner priors) + MLP(hash(x)), as HybridField.sdf. The prior and, for the default decoder
+    (one hidden ReLU layer), the decoder run in compiled single-threaded loops over the points: the meshing
+    thread leaves the cores to mapping and builds no large intermediate arrays.
+    """
+
+    def __init__(self, field: HybridField, truncation_m: float) -> None:
+        with torch.no_grad():
+            frozen = copy.deepcopy(field)
+            frozen.requires_grad_(False)
+            frozen.priors = frozen.priors.detach()
+        self.field = frozen
+        self.truncation_m = float(truncation_m)
+        self.device = frozen.priors.device
+        self._priors = frozen.priors.cpu().numpy().astype(np.float32)  # (C,)
+        self._corner_ids = frozen.corner_ids.cpu().numpy()  # (V,8) int64
+        self._origin = frozen.voxel_origin.cpu().numpy().astype(np.float32)  # (V,3) metres
+        self._decoder = _one_hidden_layer(frozen.geo_mlp)
+
+    def prior(self, points: np.ndarray, voxel_ids: np.ndarray) -> np.ndarray:
+        """Prior SDF in truncation units (N,) float32 at points (N,3) in (or on the faces of) voxels (N,)."""
+        out = np.empty(len(points), dtype=np.float32)
+        pts = np.ascontiguousarray(points, dtype=np.float32)
+        vox = np.ascontiguousarray(voxel_ids, dtype=np.int64)
+        _prior_kernel(pts, vox, self._priors, self._corner_ids, self._origin, np.float32(self.field.voxel_size_m), out)
+        return out
+
+    @torch.no_grad()
+    def sdf_m(self, points: np.ndarray, voxel_ids: np.ndarray) -> np.ndarray:
+        """SDF in metres (N,) float32 at points (N,3) lying in (or on the faces of) voxels `voxel_ids` (N,)."""
+        out = self.prior(points, voxel_ids)
+        if self.field.use_residual:
+            for i in range(0, len(points), FIELD_BATCH):
+                p = torch.from_numpy(np.ascontiguousarray(points[i : i + FIELD_BATCH], np.float32)).to(self.device)
+                feats = self.field.geo_grid(p)  # (n, L*F)
+                if self._decoder is None:
+                    out[i : i + FIELD_BATCH] += self.field.geo_mlp(feats)[:, 0].cpu().numpy()
+                else:
+                    feats_t = np.ascontiguousarray(feats.cpu().numpy().T)  # (L*F, n)
+                    _residual_kernel(feats_t, *self._decoder, out[i : i + FIELD_BATCH])
+        return out * np.float32(self.truncation_m)
+
+    @torch.no_grad()
+    def color_u8(self, points: np.ndarray) -> np.ndarray:
+        """Colour (N,3) uint8 of the field at points (N,3)."""
+        out = np.empty((len(points), 3), dtype=np.uint8)
+        for i in range(0, len(points), FIELD_BATCH):
+            p = torch.from_numpy(np.ascontiguousarray(points[i : i + FIELD_BATCH], np.float32)).to(self.device)
+            rgb = (self.field.color(p) * 255.0).round().clamp(0, 255).to(torch.uint8)
+            out[i : i + FIELD_BATCH] = rgb.cpu().numpy()
+        return out
+
+
+def _one_hidden_layer(mlp: torch.nn.Module) -> tuple[np.ndarray, ...] | None:
+    """(w1 (H,F), b1 (H,), w2 (H,), b2) float32 of a Linear-ReLU-Linear(H,1) decoder, else None."""
+    layers = list(mlp.children())
+    kinds = [type(m) for m in layers]
+    if kinds != [torch.nn.Linear, torch.nn.ReLU, torch.nn.Linear] or layers[2].out_features != 1:
+        return None
+    first, last = layers[0], layers[2]
+    as_np = lambda t: np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)  # noqa: E731
+    return as_np(first.weight), as_np(first.bias), as_np(last.weight[0]), np.float32(last.bias.item())
+
+
+@dataclass(frozen=True)
+class MeshJob:
+    """One mesher update, frozen on the mapping thread and runnable on any thread (one job at a time)."""
+
+    mesher: ChunkedMesher
+    voxel_coords: np.ndarray  # (V,3) int64 voxels to mesh (those with initialised priors)
+    voxel_ids: np.ndarray  # (V,) int64 their ids in the octree (and the field's tables)
+    dirty_voxels: np.ndarray  # (V,) bool allocated or observed since the last job: their points are re-evaluated
+    field: FrozenField
+    version: int  # stamped on the chunks it meshes
+    field_version: int  # frames integrated into the frozen field
+    refresh_s: float  # then refresh dirty voxels and the stalest chunks for up to this long
+    whole: bool = False  # re-evaluate every chunk from this field (one consistent mesh, e.g. for export)
+
+    def run(
+        self, stop: Callable[[], bool] | None = None, on_pass: Callable[[list[ChunkKey], bool], None] | None = None
+    ) -> dict[ChunkKey, MeshChunk]:
+        """Mesh new voxels, then (within the budget and until `stop()`) dirty voxels and stale chunks; see
+        ChunkedMesher.update. Returns every chunk."""
+        return self.mesher.update(
+            self.voxel_coords,
+            None if self.whole else (),
+            self.field.sdf_m,
+            self.field.color_u8,
+            self.version,
+            voxel_ids=self.voxel_ids,
+            dirty_voxels=self.dirty_voxels,
+            field_version=self.field_version,
+            refresh_s=self.refresh_s,
+            stop=stop,
+            on_pass=on_pass,
+        )
+
+    def after(self, older: MeshJob) -> MeshJob:
+        """This job, also covering the dirty voxels of an `older` job it replaces before that one ran."""
+        dirty = self.dirty_voxels | np.isin(self.voxel_ids, older.voxel_ids[older.dirty_voxels])
+        refresh_s, whole = max(self.refresh_s, older.refresh_s), self.whole or older.whole
+        return replace(self, dirty_voxels=dirty, refresh_s=refresh_s, whole=whole)

@@ -1,0 +1,152 @@
+"""What one mesher update works on: the voxels grouped by chunk, the work items (which points of which chunk
+to evaluate) cut into passes, and the coloured surface of a chunk's lattice values."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from h2viz.mapping.lattice_values import ColorFn, FaceValues, MeshingError, SdfFn, call_field
+from h2viz.mapping.marching import ChunkLattice, march, weld, world_vertices
+from h2viz.types import MeshChunk
+
+ChunkKey = tuple[int, int, int]
+POINTS_PER_PASS = 1 << 17  # lattice points evaluated together: the granularity of progress
+REFRESH_POINTS_PER_PASS = 1 << 15  # the same for optional refresh work: the granularity of its time budget
+
+
+class Eval(Enum):
+    """Which lattice points of a chunk an item evaluates (the others come from the chunk's cache)."""
+
+    NEW = "new"  # only points the cache does not know (cells of new voxels)
+    DIRTY = "dirty"  # also the points of the chunk's dirty voxels
+    WHOLE = "whole"  # every point
+
+
+Item = tuple[ChunkKey, Eval]
+
+
+@dataclass(frozen=True)
+class Meshed:
+    """What a chunk was last meshed from."""
+
+    signature: bytes  # resolution and sorted voxel coordinates
+    field_version: int  # of the field all its lattice values were last evaluated from
+    version: int  # update that last re-meshed it
+
+
+NEVER = Meshed(b"", -1, -1)
+
+
+@dataclass(frozen=True)
+class Group:
+    """The voxels of one chunk."""
+
+    coords: np.ndarray  # (n,3) int64, sorted
+    ids: np.ndarray  # (n,) int64 the caller's ids (handed to sdf_fn)
+    flags: np.ndarray  # (n,) bool dirty voxels
+
+
+def group_voxels(coords: np.ndarray, ids: np.ndarray, flags: np.ndarray, chunk_voxels: int) -> dict[ChunkKey, Group]:
+    """Unique voxels (V,3) with their ids (V,) and flags (V,) split by chunk key floor(coord / chunk_voxels),
+    sorted within each chunk (so equal voxel sets give equal bytes)."""
+    if len(coords) == 0:
+        return {}
+    keys = np.floor_divide(coords, chunk_voxels)
+    order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0], keys[:, 2], keys[:, 1], keys[:, 0]))
+    coords, keys, ids, flags = coords[order], keys[order], ids[order], flags[order]
+    fresh = np.ones(len(coords), dtype=bool)
+    fresh[1:] = np.any(coords[1:] != coords[:-1], axis=1)  # drop repeated voxels
+    coords, keys, ids, flags = coords[fresh], keys[fresh], ids[fresh], flags[fresh]
+    starts = np.flatnonzero(np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)])
+    parts = zip(starts, *(np.split(a, starts[1:]) for a in (coords, ids, flags)), strict=True)
+    return {(int(keys[s, 0]), int(keys[s, 1]), int(keys[s, 2])): Group(c, i, f) for s, c, i, f in parts}
+
+
+class Update:
+    """What one `ChunkedMesher.update` call works with."""
+
+    def __init__(
+        self,
+        groups: dict[ChunkKey, Group],
+        resolution: int,
+        sdf_fn: SdfFn,
+        color_fn: ColorFn,
+        version: int,
+        field_version: int,
+    ) -> None:
+        self.groups, self.resolution = groups, resolution
+        self.sdf_fn, self.color_fn = sdf_fn, color_fn
+        self.version, self.field_version = version, field_version
+        coords = np.concatenate([g.coords for g in groups.values()]) if groups else np.zeros((1, 3), np.int64)
+        self.faces = FaceValues(coords.min(axis=0) * resolution, (coords.max(axis=0) + 1) * resolution)
+
+    def signature(self, key: ChunkKey) -> bytes:
+        return self.resolution.to_bytes(4, "little") + self.groups[key].coords.tobytes()
+
+    def passes(self, items: list[Item], refresh: bool = False) -> Iterator[list[Item]]:
+        """Items in passes of about POINTS_PER_PASS (REFRESH_POINTS_PER_PASS for `refresh` work) evaluated
+        lattice points (a single pass when face values cannot be carried from one pass to the next)."""
+        batch: list[Item] = []
+        n_points = 0
+        limit = (REFRESH_POINTS_PER_PASS if refresh else POINTS_PER_PASS) if self.faces.enabled else math.inf
+        for key, mode in items:
+            batch.append((key, mode))
+            g = self.groups[key]
+            voxels = {Eval.NEW: 1, Eval.DIRTY: 1 + int(g.flags.sum()), Eval.WHOLE: len(g.coords)}[mode]
+            n_points += voxels * self.resolution**3
+            if n_points >= limit:
+                yield batch
+                batch, n_points = [], 0
+        if batch:
+            yield batch
+
+
+def surface(lat: ChunkLattice, values: np.ndarray, spacing_m: float) -> tuple[ChunkKey, np.ndarray, np.ndarray] | None:
+    """(key, welded world vertices (N,3), faces (M,3)) of one chunk's lattice values, or None when empty."""
+    marched = march(lat, values)
+    if marched is None:
+        return None
+    verts, faces, volume = marched
+    vertices, faces, _ = weld(world_vertices(verts, volume, lat.origin, spacing_m), faces)
+    return (lat.key, vertices, faces) if len(faces) else None
+
+
+def coloured(
+    surfaces: list[tuple[ChunkKey, np.ndarray, np.ndarray]],
+    color_fn: ColorFn,
+    version: int,
+    previous: dict[ChunkKey, MeshChunk],
+) -> dict[ChunkKey, MeshChunk]:
+    """MeshChunks of the surfaces, coloured by one color_fn call. A vertex at exactly the position it had in
+    the chunk's `previous` mesh keeps its colour (pass only the chunks whose colours may be kept)."""
+    if not surfaces:
+        return {}
+    kept = [_same_vertex(vertices, previous[key]) if key in previous else None for key, vertices, _ in surfaces]
+    ask = [np.ones(len(v), bool) if k is None else k < 0 for (_, v, _), k in zip(surfaces, kept, strict=True)]
+    points = np.concatenate([v[a] for (_, v, _), a in zip(surfaces, ask, strict=True)])
+    colors = call_field(color_fn, "color_fn", 3, points) if len(points) else np.zeros((0, 3), np.uint8)
+    if colors.dtype != np.uint8:
+        raise MeshingError(f"meshing: color_fn must return uint8 colours (0..255), got {colors.dtype}")
+    out, start = {}, 0
+    for (key, vertices, faces), k, a in zip(surfaces, kept, ask, strict=True):
+        rgb = np.empty((len(vertices), 3), dtype=np.uint8)
+        if k is not None:
+            rgb[~a] = previous[key].colors[k[~a]]
+        rgb[a] = colors[start : start + int(a.sum())]
+        start += int(a.sum())
+        out[key] = MeshChunk(key, vertices, faces.astype(np.int32), rgb, int(version))
+    return out
+
+
+def _same_vertex(vertices: np.ndarray, before: MeshChunk) -> np.ndarray:
+    """Index (N,) of each vertex (N,3) float32 in `before.vertices` when bit-identical there, else -1."""
+    n_old = len(before.vertices)
+    both = np.concatenate([before.vertices, vertices]).astype(np.float32) + np.float32(0.0)  # -0.0 -> +0.0
+    _, first, inverse = np.unique(both.view(np.dtype((np.void, 12))).ravel(), return_index=True, return_inverse=True)
+    match = first[inverse.reshape(-1)[n_old:]]
+    return np.where(match < n_old, match, -1)

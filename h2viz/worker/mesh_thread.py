@@ -1,0 +1,141 @@
+"""The meshing thread: runs the mapper's mesh jobs beside mapping and publishes their chunks, at most
+`rate_hz()` times a second. A job submitted while another one waits replaces it (covering both jobs'
+dirty voxels), and a waiting job makes the running one stop after its current pass: the newer job meshes
+from a newer field and picks up every chunk the older one left."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+log = logging.getLogger("h2viz.worker")
+
+
+@dataclass(frozen=True)
+class PassRecord:
+    """One pass of a mesh job (for measurements and the status panel)."""
+
+    job_version: int  # the job's version (stamped on its chunks)
+    field_version: int  # frames integrated into the field it meshed
+    submitted: float  # time.time() the job was submitted
+    finished: float  # time.time() the pass ended
+    chunks: tuple[tuple[int, int, int], ...]  # chunks re-meshed by this pass
+    required: bool  # part of the job's required chunks (changed or dirty), not the optional refresh
+
+
+class MeshThread:
+    """Runs jobs (objects with `run(stop, on_pass)`, `after(older)`, `version`, `field_version`, like
+    `h2viz.mapping.mesh_job.MeshJob`) one at a time; `publish()` is called after passes, no more often than
+    `rate_hz()` (<= 0: no limit)."""
+
+    def __init__(self, publish: Callable[[], None], rate_hz: Callable[[], float]) -> None:
+        self._publish, self._rate_hz = publish, rate_hz
+        self._cond = threading.Condition()
+        self._pending: tuple[Any, float] | None = None  # (job, submitted at)
+        self._running = False
+        self._stopping = False
+        self._unpublished = False
+        self._next_publish = 0.0  # time.monotonic() from which publishing is allowed again
+        self.passes: deque[PassRecord] = deque(maxlen=10_000)
+        self.errors: list[str] = []
+        self.busy_s = 0.0  # seconds spent running jobs
+        self._thread = threading.Thread(target=self._run, name="h2viz-meshing", daemon=True)
+
+    def start(self) -> MeshThread:
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        if self._thread.is_alive():
+            self._thread.join(timeout=timeout_s)
+
+    def submit(self, job: Any) -> None:
+        """Queue `job`; a job still waiting is replaced by `job.after(waiting)`."""
+        with self._cond:
+            if self._pending is not None:
+                job = job.after(self._pending[0])
+            self._pending = (job, time.time())
+            self._cond.notify_all()
+
+    @property
+    def busy(self) -> bool:
+        """A job is running or waiting."""
+        with self._cond:
+            return self._running or self._pending is not None
+
+    def wait_idle(self, timeout_s: float | None = None) -> bool:
+        """Block until no job runs or waits and the last results are published; False on timeout."""
+        with self._cond:
+            done = self._cond.wait_for(
+                lambda: not (self._running or self._pending or self._unpublished) or self._stopping, timeout_s
+            )
+            return bool(done) and not self._stopping
+
+    # -- the thread ----------------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while self._pending is None and not self._stopping:
+                    if self._unpublished and self._publish_allowed():
+                        break
+                    wait = max(0.0, self._next_publish - time.monotonic()) if self._unpublished else None
+                    self._cond.wait(wait)
+                if self._stopping:
+                    return
+                pending, self._pending = self._pending, None
+                self._running = pending is not None
+            self._flush()
+            if pending is not None:
+                self._execute(*pending)
+
+    def _execute(self, job: Any, submitted: float) -> None:
+        start = time.perf_counter()
+
+        def on_pass(chunks: list[tuple[int, int, int]], required: bool) -> None:
+            record = PassRecord(job.version, job.field_version, submitted, time.time(), tuple(chunks), required)
+            self.passes.append(record)
+            with self._cond:
+                self._unpublished = True
+            self._flush()
+
+        try:
+            job.run(stop=self._has_pending, on_pass=on_pass)
+        except Exception as e:  # keep meshing later jobs; the failed chunks are retried when next dirty
+            log.exception("mesh extraction failed")
+            self.errors.append(f"mesh extraction failed: {type(e).__name__}: {e}")
+        finally:
+            self.busy_s += time.perf_counter() - start
+            with self._cond:
+                self._running = False
+                self._cond.notify_all()
+        self._flush()
+
+    def _has_pending(self) -> bool:
+        with self._cond:
+            return self._pending is not None or self._stopping
+
+    def _publish_allowed(self) -> bool:
+        return time.monotonic() >= self._next_publish
+
+    def _flush(self) -> None:
+        """Publish unpublished results when the rate allows."""
+        with self._cond:
+            if not self._unpublished or not self._publish_allowed():
+                return
+            self._unpublished = False
+            rate = self._rate_hz()
+            self._next_publish = time.monotonic() + (1.0 / rate if rate > 0 else 0.0)
+        try:
+            self._publish()
+        except Exception:
+            log.exception("publishing the mesh failed")
+        with self._cond:
+            self._cond.notify_all()

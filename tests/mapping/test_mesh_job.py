@@ -1,0 +1,110 @@
+"""Mesh jobs beside mapping: the frozen field matches the live one and ignores later training, jobs run on
+another thread while frames are integrated, and after any sequence of partial jobs a full refresh gives
+exactly the mesh a fresh mesher makes from the same field."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from h2viz.config import MappingConfig
+from h2viz.mapping.mapper import Mapper
+from h2viz.mapping.mesh_job import FrozenField
+from h2viz.mapping.meshing import ChunkedMesher, merge_chunks
+from tests.mapping.analytic import Scene, orbit
+
+torch.set_num_threads(2)
+
+
+def small_cfg(**kw: object) -> MappingConfig:
+    base = dict(device="cpu", min_points_per_voxel=3, rays_per_iter=512, hash_log2_size=14, max_iters=3)
+    base.update(kw)
+    return MappingConfig(**base)  # type: ignore[arg-type]
+
+
+def sphere_mapper(n_frames: int, **kw: object) -> tuple[Mapper, Scene, list[np.ndarray]]:
+    scene = Scene("sphere", center=np.array([0.03, -0.02, 0.01]), radius=0.4)
+    mapper = Mapper(small_cfg(**kw))
+    poses = orbit(scene, 8, 1.4, 0.5, scene.center)
+    for i, T in enumerate(poses[:n_frames]):
+        mapper.integrate(scene.frame(i, T))
+    return mapper, scene, poses
+
+
+def probe_points(mapper: Mapper, n: int = 20_000) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N,3) inside allocated voxels, a quarter of them on voxel faces or corners, and the voxel ids."""
+    rng = np.random.default_rng(0)
+    coords = mapper.octree.voxel_coords()
+    ids = rng.integers(0, len(coords), n)
+    local = rng.random((n, 3))
+    local[: n // 4] = np.round(local[: n // 4])  # on faces, edges and corners
+    return ((coords[ids] + local) * mapper.voxel_size_m).astype(np.float32), ids
+
+
+@pytest.mark.parametrize("geo_layers", [1, 2])  # the compiled decoder, and the networks' own path
+def test_frozen_field_matches_the_live_one(geo_layers: int) -> None:
+    mapper, _, _ = sphere_mapper(2, geo_layers=geo_layers)
+    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
+    points, ids = probe_points(mapper)
+    with torch.no_grad():
+        live = mapper.field.sdf(torch.from_numpy(points), torch.from_numpy(ids)).numpy() * mapper.cfg.truncation_m
+        live_prior = mapper.field.prior_sdf(torch.from_numpy(points), torch.from_numpy(ids)).numpy()
+    np.testing.assert_allclose(frozen.prior(points, ids), live_prior, atol=1e-6)
+    np.testing.assert_allclose(frozen.sdf_m(points, ids), live, atol=2e-7)
+    assert np.abs(live).max() > 0.01  # a non-trivial field
+    np.testing.assert_array_equal(frozen.color_u8(points), mapper.color_u8(points))
+
+
+def test_frozen_field_ignores_later_training() -> None:
+    mapper, scene, poses = sphere_mapper(2)
+    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
+    points, ids = probe_points(mapper, 5000)
+    sdf, rgb = frozen.sdf_m(points, ids), frozen.color_u8(points)
+    mapper.integrate(scene.frame(2, poses[2]))  # trains the live field in place
+    with torch.no_grad():
+        mapper.field.priors.add_(0.5)
+    np.testing.assert_array_equal(frozen.sdf_m(points, ids), sdf)
+    np.testing.assert_array_equal(frozen.color_u8(points), rgb)
+    assert not np.allclose(mapper.sdf_m(points), sdf)
+
+
+def test_jobs_on_another_thread_then_a_full_refresh_equal_a_fresh_mesh() -> None:
+    mapper, scene, poses = sphere_mapper(2)
+    for i, T in enumerate(poses[2:6], start=2):
+        job = mapper.mesh_job(refresh_s=0.05)
+        assert job is not None and job.dirty_voxels.any()
+        runner = threading.Thread(target=job.run)
+        runner.start()
+        mapper.integrate(scene.frame(i, T))  # mapping goes on while the job meshes
+        runner.join()
+        assert mapper.mesh_chunks()
+    assert mapper.mesher.stale(mapper.frames_done) > 0
+    mesh = mapper.mesh()  # every chunk brought up to the current field
+    assert mapper.mesher.stale(mapper.frames_done) == 0 and mapper.mesh_job() is None
+    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
+    meshable = np.flatnonzero(mapper.priors.initialised(mapper.octree.n_voxels))
+    fresh_mesher = ChunkedMesher(mapper.voxel_size_m, mapper.cfg.mesh_resolution, mapper.cfg.chunk_voxels)
+    coords = mapper.octree.voxel_coords()[meshable]
+    fresh = merge_chunks(fresh_mesher.update(coords, None, frozen.sdf_m, frozen.color_u8, 1, voxel_ids=meshable))
+    order = lambda m: np.lexsort(np.asarray(m.vertices).T[::-1])  # noqa: E731
+    np.testing.assert_array_equal(np.asarray(mesh.vertices)[order(mesh)], np.asarray(fresh.vertices)[order(fresh)])
+    np.testing.assert_array_equal(mesh.visual.vertex_colors[order(mesh)], fresh.visual.vertex_colors[order(fresh)])
+    assert len(mesh.faces) == len(fresh.faces) > 1000
+    assert np.median(np.abs(scene.sdf(np.asarray(mesh.vertices)))) < 0.01
+
+
+def test_a_job_replacing_a_waiting_one_keeps_its_dirty_voxels() -> None:
+    mapper, scene, poses = sphere_mapper(2)
+    older = mapper.mesh_job()
+    mapper.integrate(scene.frame(2, poses[2]))
+    newer = mapper.mesh_job()
+    assert older is not None and newer is not None
+    merged = newer.after(older)
+    had = set(older.voxel_ids[older.dirty_voxels]) | set(newer.voxel_ids[newer.dirty_voxels])
+    assert set(merged.voxel_ids[merged.dirty_voxels]) == had
+    assert merged.field is newer.field and merged.version == newer.version
+    assert replace(merged, refresh_s=0.0).refresh_s == 0.0
