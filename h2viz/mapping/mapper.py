@@ -268,12 +268,9 @@ class Mapper:
         self, K: np.ndarray, T_world_camera: np.ndarray, height: int, width: int, mode: str = "rgb"
     ) -> np.ndarray:
         """Render any camera: rgb (H,W,3) [0,1], depth/prior (H,W) metres, normal (H,W,3) [-1,1]."""
-        c = self.cfg
-        params = RenderParams(
-            t_far=max(self.max_depth_m, 1.0) * 1.5 + c.voxel_size_m,
-            step_m=c.step_m,
-            truncation_m=c.truncation_m,
-            temperature=c.render_temperature,
-            band=4.0 * c.voxel_size_m / c.truncation_m if c.priors else None,
-        )
-        return render_image(self.field, self.octree, K, T_world_camera, height, width, mode, params)
+        params = RenderParams.from_config(self.cfg, self.max_depth_m)
+        trusted = None  # voxels whose 8 corners all hold a measured prior: there the priors locate the surface
+        if self.cfg.priors:
+            trusted = torch.ones(self.octree.n_voxels, dtype=torch.bool)
+            trusted[torch.from_numpy(self.priors.pending)] = False
+        return render_image(self.field, self.octree, K, T_world_camera, height, width, mode, params, trusted)

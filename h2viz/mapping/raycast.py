@@ -1,7 +1,14 @@
 """Render the field at any camera: rgb, depth, normal or prior-only depth, in ray chunks without gradients.
 
-With priors enabled, samples whose prior lies further than `band` truncation units from the surface are
-dropped before the networks run: their rendering weight sigmoid(s)*sigmoid(-s) is negligible.
+`render_image` runs the networks only where rendering weight can be. Each ray walks the allocated voxels
+(numba, raymarch.py) on the lattice of an exhaustive render (every 1 cm of every voxel, the same positions
+bit for bit); voxels whose 8 corners hold measured priors point at the first surface through the trilinear
+prior, other voxels are searched coarse then fine with the full SDF, and evaluation spreads from there only
+while the SDF stays near zero (surface.py). The kept samples get exactly the paper's weights
+(`render_weights`); the skipped ones would weigh less than `surface.NEGLIGIBLE_WEIGHT`, as long as the hash-grid
+residual does not add surfaces where the measured priors see none. `render_image_reference` is the exhaustive
+render, kept as the baseline the fast path is checked against. Depth is along the camera axis (z-normalised
+rays); rays whose weights sum below HIT_WEIGHT render empty (0) in both.
 """
 
 from __future__ import annotations
@@ -11,13 +18,22 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from h2viz.config import MappingConfig
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.rays import pixel_rays
-from h2viz.mapping.rendering import composite, render_weights
-from h2viz.mapping.sampling import sample_rays
+from h2viz.mapping.rendering import composite, render_weights, segment_sum
+from h2viz.mapping.sampling import Samples, sample_rays
+from h2viz.mapping.surface import MLP_ROWS, SearchParams, colour, prior_samples, weighted_samples
 
 MODES = ("rgb", "depth", "normal", "prior")
+CHUNK_RAYS = 65536
+HIT_WEIGHT = 1e-2
+"""A ray shows a surface when its rendering weights sum above this (a crossing sums to ~0.25 or more); rays
+that only pass near surfaces, with tiny weights and meaningless depths, render empty."""
+COLOUR_SHARE = 1e-2
+"""Colour is the weighted mean over the samples carrying at least this share of their ray's rendering weight
+(the others lie within a centimetre or two of them on the same surface)."""
 
 
 @dataclass(frozen=True)
@@ -26,7 +42,22 @@ class RenderParams:
     step_m: float
     truncation_m: float
     temperature: float
-    band: float | None  # keep samples with |prior| < band (truncation units); None keeps all
+    band: float | None  # reference path: keep samples with |prior| < band (truncation units); None keeps all
+    after_m: float = 0.1  # fast path: walk this far beyond the first prior crossing before trusting it
+
+    def search(self) -> SearchParams:
+        return SearchParams(self.step_m, self.truncation_m, self.temperature, self.after_m)
+
+    @staticmethod
+    def from_config(cfg: MappingConfig, max_depth_m: float) -> RenderParams:
+        """The mapper's render settings: rays reach 1.5x the deepest depth seen."""
+        return RenderParams(
+            t_far=max(max_depth_m, 1.0) * 1.5 + cfg.voxel_size_m,
+            step_m=cfg.step_m,
+            truncation_m=cfg.truncation_m,
+            temperature=cfg.render_temperature,
+            band=4.0 * cfg.voxel_size_m / cfg.truncation_m if cfg.priors else None,
+        )
 
 
 def locate(octree: VoxelOctree, points: torch.Tensor) -> torch.Tensor:
@@ -43,12 +74,54 @@ def locate(octree: VoxelOctree, points: torch.Tensor) -> torch.Tensor:
     return ids
 
 
-def sdf_gradient(field: HybridField, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
-    """Unit normals (N,3) as the normalised SDF gradient."""
+def sdf_gradient(field: HybridField, points: torch.Tensor, voxel: torch.Tensor, rows: int = MLP_ROWS) -> torch.Tensor:
+    """Unit normals (N,3) as the normalised SDF gradient (autograd through the field, `rows` points at a time)."""
+    grads = []
     with torch.enable_grad():
-        p = points.detach().requires_grad_(True)
-        (grad,) = torch.autograd.grad(field.sdf(p, voxel).sum(), p)
+        for i in range(0, points.shape[0], rows):
+            p = points[i : i + rows].detach().requires_grad_(True)
+            (grad,) = torch.autograd.grad(field.sdf(p, voxel[i : i + rows]).sum(), p)
+            grads.append(grad)
+    grad = torch.cat(grads) if grads else torch.zeros_like(points)
     return torch.nn.functional.normalize(grad, dim=1)
+
+
+def colour_samples(samples: Samples, weights: torch.Tensor) -> torch.Tensor:
+    """Indices (S',) of the samples whose weight is at least COLOUR_SHARE of their ray's: the colour network
+    runs only there."""
+    total = segment_sum(weights, samples.ray, samples.n_rays)  # (R,)
+    return torch.nonzero(weights > COLOUR_SHARE * total[samples.ray])[:, 0]
+
+
+def shade(
+    field: HybridField,
+    octree: VoxelOctree,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    samples: Samples,
+    sdf: torch.Tensor,
+    mode: str,
+    params: RenderParams,
+) -> torch.Tensor:
+    """Composite R rays from their samples and SDF (S,): (R,3) for rgb/normal, (R,) for depth/prior."""
+    weights = render_weights(samples, sdf, params.truncation_m, params.temperature)  # (S,)
+    hit = segment_sum(weights, samples.ray, samples.n_rays) > HIT_WEIGHT  # (R,)
+    if mode == "rgb":
+        live = colour_samples(samples, weights)  # (S',)
+        kept = samples.select(live)
+        return composite(kept, weights[live], colour(field, kept.points)).rgb * hit[:, None]
+    depth = composite(samples, weights, None).depth * hit  # (R,)
+    if mode != "normal":
+        return depth
+    normals = torch.zeros(origins.shape[0], 3, device=origins.device)
+    if bool(hit.any()):
+        pts = origins[hit] + dirs[hit] * depth[hit, None]
+        vid = locate(octree, pts)
+        ok = vid >= 0
+        n = torch.zeros_like(pts)
+        n[ok] = sdf_gradient(field, pts[ok], vid[ok])
+        normals[hit] = n
+    return normals
 
 
 @torch.no_grad()
@@ -59,34 +132,35 @@ def render_rays(
     dirs: torch.Tensor,
     mode: str,
     params: RenderParams,
+    trusted: torch.Tensor | None,
 ) -> torch.Tensor:
-    """Render R rays: (R,3) for rgb/normal, (R,) for depth/prior."""
-    R = origins.shape[0]
-    t_far = torch.full((R,), params.t_far, device=origins.device)
+    """Render R rays (origins, dirs (R,3)), evaluating the networks only where weight can be."""
+    if mode == "prior":
+        samples, sdf = prior_samples(octree, field, origins, dirs, params.t_far, params.search())
+    else:
+        samples, sdf = weighted_samples(field, octree, origins, dirs, params.t_far, trusted, params.search())
+    return shade(field, octree, origins, dirs, samples, sdf, mode, params)
+
+
+@torch.no_grad()
+def render_rays_reference(
+    field: HybridField,
+    octree: VoxelOctree,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    mode: str,
+    params: RenderParams,
+    trusted: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Render R rays from every sample of every allocated voxel up to t_far (band-filtered by the prior)."""
+    t_far = torch.full((origins.shape[0],), params.t_far, device=origins.device)
     samples = sample_rays(octree, origins, dirs, t_far, params.step_m, False)
     prior = field.prior_sdf(samples.points, samples.voxel)
     if params.band is not None:
         keep = prior.abs() < params.band
         samples, prior = samples.select(keep), prior[keep]
     sdf = prior if mode == "prior" else field.sdf(samples.points, samples.voxel)
-    weights = render_weights(samples, sdf, params.truncation_m, params.temperature)
-    rgb = field.color(samples.points[weights > 0]) if mode == "rgb" else None
-    if rgb is not None:
-        samples, weights = samples.select(weights > 0), weights[weights > 0]
-    out = composite(samples, weights, rgb)
-    if mode == "rgb":
-        return out.rgb
-    if mode != "normal":
-        return out.depth
-    normals = torch.zeros(R, 3, device=origins.device)
-    if bool(out.hit.any()):
-        pts = origins[out.hit] + dirs[out.hit] * out.depth[out.hit, None]
-        vid = locate(octree, pts)
-        ok = vid >= 0
-        n = torch.zeros_like(pts)
-        n[ok] = sdf_gradient(field, pts[ok], vid[ok])
-        normals[out.hit] = n
-    return normals
+    return shade(field, octree, origins, dirs, samples, sdf, mode, params)
 
 
 def render_image(
@@ -98,21 +172,27 @@ def render_image(
     width: int,
     mode: str,
     params: RenderParams,
-    chunk: int = 16384,
+    trusted: torch.Tensor | None = None,
+    chunk: int = CHUNK_RAYS,
+    reference: bool = False,
 ) -> np.ndarray:
-    """(H,W,3) float32 rgb in [0,1] / normals in [-1,1], or (H,W) float32 depth in metres (0 = nothing)."""
+    """(H,W,3) float32 rgb in [0,1] / normals in [-1,1], or (H,W) float32 depth in metres (0 = nothing).
+    trusted (V,) bool: voxels whose 8 corner priors are all set (None: priors disabled, search the SDF)."""
     if mode not in MODES:
         raise ValueError(f"render mode '{mode}' is not one of {', '.join(MODES)}")
     dev = field.priors.device
     origins, dirs = pixel_rays(K, T_world_camera, height, width, dev)
+    channels = (3,) if mode in ("rgb", "normal") else ()
     if octree.n_voxels == 0:
-        parts = [
-            torch.zeros(origins.shape[0], 3) if mode in ("rgb", "normal") else torch.zeros(origins.shape[0])
-        ]
-    else:
-        parts = [
-            render_rays(field, octree, origins[i : i + chunk], dirs[i : i + chunk], mode, params)
-            for i in range(0, origins.shape[0], chunk)
-        ]
-    img = torch.cat(parts).float().cpu().numpy()
-    return img.reshape(height, width, -1) if img.ndim == 2 else img.reshape(height, width)
+        return np.zeros((height, width, *channels), dtype=np.float32)
+    fn = render_rays_reference if reference else render_rays
+    parts = [
+        fn(field, octree, origins[i : i + chunk], dirs[i : i + chunk], mode, params, trusted)
+        for i in range(0, origins.shape[0], chunk)
+    ]
+    return torch.cat(parts).float().cpu().numpy().reshape(height, width, *channels)
+
+
+def render_image_reference(*args: object, **kwargs: object) -> np.ndarray:
+    """`render_image` over every sample of an exhaustive walk (slow; the baseline of the fast path)."""
+    return render_image(*args, reference=True, **kwargs)  # type: ignore[arg-type]

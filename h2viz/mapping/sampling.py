@@ -1,4 +1,4 @@
-"""Ray samples inside allocated leaf voxels: vectorised voxel traversal (3-D DDA) plus fixed-step samples.
+"""Ray samples inside allocated leaf voxels: voxel traversal (3-D DDA) plus fixed-step samples.
 
 Rays use z-normalised directions (camera z of the direction = 1), so a sample's parameter t is its depth
 along the camera axis and compares directly with depth images.
@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import torch
 
-from h2viz.mapping.octree import VoxelOctree, encode
+from h2viz.mapping.octree import VoxelOctree
+from h2viz.mapping.raymarch import voxel_hits
 
 
 @dataclass
@@ -40,43 +41,12 @@ class Hits:
 def traverse(
     octree: VoxelOctree, origins: torch.Tensor, dirs: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor
 ) -> Hits:
-    """Allocated voxels crossed by each ray between t_near and t_far (R,), by stepping all rays at once."""
-    vs = octree.voxel_size_m
-    R = origins.shape[0]
-    dev = origins.device
-    start = origins + dirs * t_near[:, None]  # (R,3)
-    cell = torch.floor(start / vs).long()  # (R,3)
-    safe = torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
-    step = torch.where(safe > 0, 1, -1)  # (R,3)
-    t_delta = (vs / safe).abs()  # (R,3)
-    boundary = (cell + (step > 0).long()).to(origins.dtype) * vs
-    t_next = (boundary - origins) / safe  # (R,3)
-    n_steps = (
-        int(torch.ceil(((t_far - t_near).clamp(min=0) * dirs.norm(dim=1)).max() / vs * 1.733).item()) + 2
-    )
-    cells, t_ins, t_outs = [], [], []
-    t_cur = t_near.clone()
-    for _ in range(n_steps):
-        t_exit, axis = t_next.min(dim=1)  # (R,)
-        cells.append(cell.clone())
-        t_ins.append(t_cur.clone())
-        t_outs.append(torch.minimum(t_exit, t_far))
-        onehot = torch.nn.functional.one_hot(axis, 3).bool()  # (R,3)
-        cell = torch.where(onehot, cell + step, cell)
-        t_next = torch.where(onehot, t_next + t_delta, t_next)
-        t_cur = t_exit
-    cell_all = torch.stack(cells, dim=1)  # (R,N,3)
-    t_in = torch.stack(t_ins, dim=1)  # (R,N)
-    t_out = torch.stack(t_outs, dim=1)  # (R,N)
-    vid = octree.voxels.lookup_torch(encode(cell_all))  # (R,N)
-    keep = (vid >= 0) & (t_out > t_in)
-    ray = torch.arange(R, device=dev)[:, None].expand_as(vid)
-    return Hits(ray[keep], vid[keep], t_in[keep], t_out[keep])
+    """Allocated voxels crossed by each ray between t_near and t_far (R,): an exact voxel walk per ray that
+    jumps over empty space (numba, see h2viz.mapping.raymarch)."""
+    return Hits(*voxel_hits(octree, origins, dirs, t_near, t_far))
 
 
-def sample_hits(
-    hits: Hits, origins: torch.Tensor, dirs: torch.Tensor, step_m: float, jitter: bool
-) -> Samples:
+def sample_hits(hits: Hits, origins: torch.Tensor, dirs: torch.Tensor, step_m: float, jitter: bool) -> Samples:
     """Samples every `step_m` (in t) inside each hit segment; stratified jitter when training."""
     length = hits.t_out - hits.t_in  # (H,)
     counts = torch.ceil(length / step_m).long().clamp(min=1)  # (H,)

@@ -1,10 +1,13 @@
-"""Ray/voxel traversal and samples against a brute-force dense march; rendering weights on a plane."""
+"""Ray/voxel traversal (with its empty-space jumps) and samples against a brute-force dense march; rendering
+weights on a plane."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
+from h2viz.mapping import raymarch
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.rendering import composite, render_weights
 from h2viz.mapping.sampling import sample_rays, traverse
@@ -63,10 +66,7 @@ def test_samples_lie_in_their_voxels_and_are_ordered() -> None:
     assert bool((s.t[1:][same] >= s.t[:-1][same] - 1e-6).all())
     # roughly one sample per centimetre of voxel interior crossed
     hits = traverse(tree, o, d, torch.zeros(64), torch.full((64,), 2.0))
-    assert (
-        abs(s.t.numel() - float(((hits.t_out - hits.t_in) / 0.01).sum()))
-        < 0.1 * s.t.numel() + hits.ray.numel()
-    )
+    assert abs(s.t.numel() - float(((hits.t_out - hits.t_in) / 0.01).sum())) < 0.1 * s.t.numel() + hits.ray.numel()
 
 
 def test_rendered_depth_of_an_exact_plane_sdf() -> None:
@@ -82,3 +82,34 @@ def test_rendered_depth_of_an_exact_plane_sdf() -> None:
     # camera at height 1 looking down: the surface is at t = 1 along z-normalised rays
     assert bool(out.hit.all())
     np.testing.assert_allclose(out.depth.numpy(), 1.0, atol=3e-3)
+
+
+def sparse_tree() -> VoxelOctree:
+    """A few clusters of voxels metres apart: rays cross long stretches of empty space between them."""
+    rng = np.random.default_rng(5)
+    tree = VoxelOctree(0.1, min_points=0, expansion=False)
+    centres = rng.integers(-40, 40, size=(6, 3))
+    coords = (centres[:, None, :] + rng.integers(-2, 3, size=(6, 30, 3))).reshape(-1, 3)
+    tree.allocate((coords + 0.5) * 0.1)
+    return tree
+
+
+@pytest.mark.parametrize("skip_cells", [1 << 20, 64])
+def test_traversal_jumps_empty_space_without_missing_voxels(monkeypatch: pytest.MonkeyPatch, skip_cells: int) -> None:
+    """Empty-space jumps (fine skip cells, and coarse ones when the map's box is large) find every voxel a
+    dense march finds, from t_near on."""
+    monkeypatch.setattr(raymarch, "SKIP_CELLS", skip_cells)
+    tree = sparse_tree()
+    assert (raymarch.walk_table(tree).skip_shift > 0) == (skip_cells == 64)
+    rng = np.random.default_rng(6)
+    coords = tree.voxel_coords()
+    targets = (coords[rng.integers(len(coords), size=30)] + rng.uniform(0, 1, size=(30, 3))) * 0.1
+    origins = rng.uniform(-4, 4, size=(30, 3))
+    dirs = (targets - origins) / np.linalg.norm(targets - origins, axis=1, keepdims=True)
+    t_near = rng.uniform(0, 0.5, size=30)
+    hits = traverse(tree, *(torch.tensor(a).float() for a in (origins, dirs, t_near)), torch.full((30,), 12.0))
+    for r in range(30):
+        found = set(hits.voxel[hits.ray == r].tolist())
+        expected = brute_force_voxels(tree, origins[r] + dirs[r] * t_near[r], dirs[r], 12.0 - t_near[r])
+        assert expected <= found and len(found - expected) <= 1
+    assert bool((hits.t_in >= torch.tensor(t_near).float()[hits.ray] - 1e-6).all())
