@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Any
 
 import numba
 import numpy as np
-import torch
 
+from h2viz.mapping.jit import njit
 from h2viz.mapping.octree import OFFSET
 
 if TYPE_CHECKING:
@@ -28,42 +28,10 @@ PROBE, COARSE, TRUSTED = 1, 2, 4  # lattice flags
 MODES = {"trust": 0, "distrust": 1, "prior": 2}
 
 
-def jit(fn: Any) -> Any:
-    """njit(cache=True), compiling per process when numba finds no writable cache directory."""
-    try:
-        return numba.njit(cache=True)(fn)
-    except RuntimeError:
-        return numba.njit(cache=False)(fn)
-
-
-def inline_jit(fn: Any) -> Any:
-    """jit inlined into its callers at numba's IR level (small helpers of hot loops)."""
-    try:
-        return numba.njit(cache=True, inline="always")(fn)
-    except RuntimeError:
-        return numba.njit(cache=False, inline="always")(fn)
-
-
-def jit_nogil(fn: Any) -> Any:
-    """jit that releases the GIL, for kernels that Python threads run side by side."""
-    try:
-        return numba.njit(cache=True, nogil=True)(fn)
-    except RuntimeError:
-        return numba.njit(cache=False, nogil=True)(fn)
-
-
-def parallel_jit(fn: Any) -> Any:
-    try:
-        return numba.njit(parallel=True, cache=True)(fn)
-    except RuntimeError:
-        return numba.njit(parallel=True, cache=False)(fn)
-
-
-def threads() -> int:
-    """Numba threads matched to torch's (capped at numba's pool); also the number of ray blocks."""
-    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-    numba.set_num_threads(n)
-    return n
+jit = njit
+inline_jit = njit(inline=True)
+jit_nogil = njit(nogil=True)
+parallel_jit = njit(parallel=True)
 
 
 @jit

@@ -6,12 +6,26 @@ octree; the two hash grids and decoders are ordinary modules.
 
 from __future__ import annotations
 
+import functools
+from types import ModuleType
+
 import torch
 from torch import nn
 
 from h2viz.config import MappingConfig
 from h2viz.mapping.encoding import HashGrid
 from h2viz.mapping.octree import VoxelOctree
+from h2viz.mapping.tiled import tiled
+
+
+@functools.cache
+def prior_kernels() -> ModuleType | None:
+    """The fused CPU prior kernel module, or None when numba cannot be imported."""
+    try:
+        from h2viz.mapping import prior_numba
+    except ImportError:
+        return None
+    return prior_numba
 
 
 def mlp(d_in: int, hidden: int, layers: int, d_out: int) -> nn.Sequential:
@@ -42,6 +56,7 @@ class HybridField(nn.Module):
             last.weight.mul_(0.01)
             last.bias.zero_()
         self.voxel_size_m = cfg.voxel_size_m
+        self.kernels = cfg.kernels
         self.use_residual = True
         # Corners without a prior start as free space at the truncation distance: a zero would put a
         # surface on every corner whose projection failed.
@@ -59,12 +74,13 @@ class HybridField(nn.Module):
             self.priors = grown.requires_grad_(self.priors.requires_grad)
         if octree.n_voxels != self.corner_ids.shape[0]:
             self.corner_ids = torch.from_numpy(octree.voxel_corners).to(dev)
-            self.voxel_origin = (
-                torch.from_numpy(octree.voxel_coords()).to(dev, torch.float32) * self.voxel_size_m
-            )
+            self.voxel_origin = torch.from_numpy(octree.voxel_coords()).to(dev, torch.float32) * self.voxel_size_m
 
     def prior_sdf(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
         """Trilinear interpolation of the 8 corner priors of each point's voxel: (N,3), (N,) -> (N,)."""
+        fused = prior_kernels() if self.kernels == "auto" else None
+        if fused is not None and points.device.type == "cpu" and not (torch.is_grad_enabled() and points.requires_grad):
+            return fused.fused_prior(self.priors, points, voxel, self.voxel_origin, self.corner_ids, self.voxel_size_m)
         return self._trilinear(points, voxel, self.priors[self.corner_ids[voxel]])
 
     def _trilinear(self, points: torch.Tensor, voxel: torch.Tensor, vals: torch.Tensor) -> torch.Tensor:
@@ -80,7 +96,7 @@ class HybridField(nn.Module):
         """Signed distance in truncation units (N,) at points (N,3) lying in voxels (N,)."""
         s = self.prior_sdf(points, voxel)
         if self.use_residual:
-            s = s + self.geo_mlp(self.geo_grid(points))[:, 0]
+            s = s + tiled(self.geo_mlp, self.geo_grid(points))[:, 0]
         return s
 
     def color(self, points: torch.Tensor) -> torch.Tensor:

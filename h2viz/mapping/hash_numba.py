@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numba
@@ -36,6 +36,7 @@ from torch.autograd.function import once_differentiable
 
 from h2viz.errors import H2vizError
 from h2viz.mapping.encoding import HASH_PRIMES
+from h2viz.mapping.jit import njit, threads
 
 P_Y, P_Z = HASH_PRIMES[1], HASH_PRIMES[2]  # the x multiplier is 1
 PREFETCH_AHEAD = 8
@@ -43,17 +44,8 @@ PREFETCH_AHEAD = 8
 _LOCK = threading.Lock()  # a parallel region must not be entered from two threads at once (workqueue layer)
 
 
-def _jit(fn: Callable[..., Any], parallel: bool = False) -> Any:
-    """njit(cache=True); without a writable cache directory, compile in every process instead."""
-    try:
-        return numba.njit(parallel=parallel, cache=True, fastmath=False)(fn)
-    except RuntimeError:  # numba found no writable place for its cache
-        return numba.njit(parallel=parallel, cache=False, fastmath=False)(fn)
-
-
-def _parallel_jit(fn: Callable[..., Any]) -> Any:
-    """_jit with parallel=True (numba.prange loops run on numba's thread pool)."""
-    return _jit(fn, parallel=True)
+_jit = njit
+_parallel_jit = njit(parallel=True)
 
 
 @_jit
@@ -177,11 +169,7 @@ def level_order(n_levels: int) -> np.ndarray:
     return np.asarray(order, dtype=np.int64)
 
 
-def _threads() -> int:
-    """Set numba's thread count to torch's (capped at numba's pool size) and return it."""
-    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-    numba.set_num_threads(n)
-    return n
+_threads = threads
 
 
 def _points64(x: Tensor) -> Tensor:

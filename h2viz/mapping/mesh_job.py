@@ -13,23 +13,18 @@ import copy
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
-import numba
 import numpy as np
 import torch
 
 from h2viz.mapping.field import HybridField
+from h2viz.mapping.jit import njit
 from h2viz.mapping.meshing import ChunkedMesher, ChunkKey
 from h2viz.types import MeshChunk
 
 FIELD_BATCH = 1 << 16  # points per network call (the activations stay in cache)
 
 
-def _jit(fn: Callable[..., None]) -> Callable[..., None]:
-    """numba.njit with the on-disk cache; compiled per process when no cache directory is writable."""
-    try:
-        return numba.njit(cache=True)(fn)
-    except RuntimeError:
-        return numba.njit(cache=False)(fn)
+_jit = njit
 
 
 @_jit

@@ -26,7 +26,8 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from h2viz.mapping.dda import LOCK, MODES, build_table, hits_kernel, lattice_chunk, threads
+from h2viz.mapping.dda import LOCK, MODES, build_table, hits_kernel, lattice_chunk
+from h2viz.mapping.jit import threads
 from h2viz.mapping.octree import VoxelOctree, decode
 
 

@@ -6,7 +6,9 @@ along the camera axis and compares directly with depth images.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from types import ModuleType
 
 import torch
 
@@ -87,14 +89,22 @@ def band_samples(
     step_m: float,
     n_free: int,
     generator: torch.Generator | None = None,
+    fused: bool = True,
 ) -> Samples:
     """Training samples where the losses act, without traversing the whole ray: every `step_m` from
     `band_m` in front of the measured depth to tr behind it, plus `n_free` stratified free-space candidates
-    between the camera and the band; only candidates inside allocated voxels are kept. depth (R,) > 0."""
+    between the camera and the band; only candidates inside allocated voxels are kept. depth (R,) > 0.
+    `fused` runs the numba kernel (h2viz.mapping.band) for CPU rays; the torch code below is its reference."""
     R, dev = depth.shape[0], depth.device
     n_band = int(round((band_m + truncation_m) / step_m))
+    jitter = torch.rand(R, n_band + n_free, generator=generator)  # (R,F+B) reproducible on any device
+    if fused and dev.type == "cpu" and band_kernels() is not None:
+        points, t, ray, voxel = band_kernels().band_candidates(
+            octree, origins, dirs, depth, jitter, n_free, band_m, step_m
+        )
+        return Samples(points, t, ray, voxel, R)
+    jitter = jitter.to(dev)
     k = torch.arange(n_band, device=dev, dtype=depth.dtype)
-    jitter = torch.rand(R, n_band + n_free, generator=generator).to(dev)  # (R,F+B) reproducible on any device
     t_band = (depth - band_m)[:, None] + (k + jitter[:, n_free:]) * step_m  # (R,B)
     free_end = (depth - band_m).clamp(min=0.0)
     j = torch.arange(n_free, device=dev, dtype=depth.dtype)
@@ -105,3 +115,13 @@ def band_samples(
     keep = (voxel >= 0) & (t.reshape(-1) > 0)
     ray = torch.arange(R, device=dev).repeat_interleave(t.shape[1])
     return Samples(points.reshape(-1, 3)[keep], t.reshape(-1)[keep], ray[keep], voxel[keep], R)
+
+
+@functools.cache
+def band_kernels() -> ModuleType | None:
+    """The numba band-sampling module, or None when numba cannot be imported."""
+    try:
+        from h2viz.mapping import band
+    except ImportError:
+        return None
+    return band

@@ -25,8 +25,9 @@ import numpy as np
 import torch
 
 from h2viz.mapping import lattice_search as ls
-from h2viz.mapping.dda import LOCK, threads
+from h2viz.mapping.dda import LOCK
 from h2viz.mapping.field import HybridField
+from h2viz.mapping.jit import threads
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.raymarch import Lattice, MarchParams, rays64, render_lattice
 from h2viz.mapping.sampling import Samples

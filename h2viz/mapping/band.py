@@ -1,0 +1,130 @@
+"""Numba kernel of the training samples (`h2viz.mapping.sampling.band_samples` is its torch reference).
+
+Per ray: `n_free` stratified free-space candidates between the camera and the band, then every `step` from
+`band` in front of the measured depth to tr behind it (each jittered within its stratum), in float32 as the
+reference computes them; each candidate is looked up in the octree's leaf hash table and kept when it falls in
+an allocated voxel. Two parallel passes over blocks of rays: count (and remember each candidate's voxel), then
+write the kept samples at each ray's offset, ray-major and in increasing t.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+from h2viz.mapping.dda import LOCK, lookup
+from h2viz.mapping.jit import njit, threads
+from h2viz.mapping.octree import VoxelOctree
+from h2viz.mapping.raymarch import walk_table
+
+
+@njit(inline=True)
+def _candidate_t(
+    depth: np.float32, jitter: np.ndarray, r: int, k: int, n_free: int, band: np.float32, step: np.float32
+) -> np.float32:
+    """t of candidate k of ray r: free-space strata first, then the band."""
+    if k < n_free:
+        free_end = max(depth - band, np.float32(0.0))
+        return (np.float32(k) + jitter[r, k]) / np.float32(n_free) * free_end
+    return (depth - band) + (np.float32(k - n_free) + jitter[r, k]) * step
+
+
+@njit(parallel=True)
+def _band_kernel(
+    origins: np.ndarray,
+    dirs: np.ndarray,
+    depth: np.ndarray,
+    jitter: np.ndarray,
+    n_free: int,
+    band: float,
+    step: float,
+    vs: float,
+    table_keys: np.ndarray,
+    table_ids: np.ndarray,
+    n_blocks: int,
+    counts: np.ndarray,
+    voxel_of: np.ndarray,
+) -> None:
+    """voxel_of (R,K) <- voxel id of every candidate (-1 outside the map or behind the camera); counts (R,)."""
+    n_rays, n_cand = jitter.shape
+    b32, s32, vs32 = np.float32(band), np.float32(step), np.float32(vs)
+    for block in numba.prange(n_blocks):
+        for r in range(block * n_rays // n_blocks, (block + 1) * n_rays // n_blocks):
+            kept = 0
+            for k in range(n_cand):
+                t = _candidate_t(depth[r], jitter, r, k, n_free, b32, s32)
+                v = -1
+                if t > 0.0:
+                    cx = np.int64(np.floor((origins[r, 0] + dirs[r, 0] * t) / vs32))
+                    cy = np.int64(np.floor((origins[r, 1] + dirs[r, 1] * t) / vs32))
+                    cz = np.int64(np.floor((origins[r, 2] + dirs[r, 2] * t) / vs32))
+                    v = lookup(table_keys, table_ids, cx, cy, cz)
+                voxel_of[r, k] = v
+                kept += v >= 0
+            counts[r] = kept
+
+
+@njit(parallel=True)
+def _band_fill(
+    origins: np.ndarray,
+    dirs: np.ndarray,
+    depth: np.ndarray,
+    jitter: np.ndarray,
+    n_free: int,
+    band: float,
+    step: float,
+    voxel_of: np.ndarray,
+    offsets: np.ndarray,
+    n_blocks: int,
+    points: np.ndarray,
+    t_out: np.ndarray,
+    ray: np.ndarray,
+    voxel: np.ndarray,
+) -> None:
+    """Write the kept candidates of every ray at offsets (R,) into points (S,3), t, ray, voxel (S,)."""
+    n_rays, n_cand = jitter.shape
+    b32, s32 = np.float32(band), np.float32(step)
+    for block in numba.prange(n_blocks):
+        for r in range(block * n_rays // n_blocks, (block + 1) * n_rays // n_blocks):
+            s = offsets[r]
+            for k in range(n_cand):
+                if voxel_of[r, k] < 0:
+                    continue
+                t = _candidate_t(depth[r], jitter, r, k, n_free, b32, s32)
+                for a in range(3):
+                    points[s, a] = origins[r, a] + dirs[r, a] * t
+                t_out[s], ray[s], voxel[s] = t, r, voxel_of[r, k]
+                s += 1
+
+
+def band_candidates(
+    octree: VoxelOctree,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    depth: torch.Tensor,
+    jitter: torch.Tensor,
+    n_free: int,
+    band_m: float,
+    step_m: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(points (S,3), t (S,), ray (S,), voxel (S,)) of the candidates inside allocated voxels, for CPU rays
+    origins/dirs (R,3), depth (R,) and jitter (R, n_free + n_band) in [0, 1)."""
+    o = np.ascontiguousarray(origins.detach().numpy(), dtype=np.float32)
+    d = np.ascontiguousarray(dirs.detach().numpy(), dtype=np.float32)
+    z = np.ascontiguousarray(depth.detach().numpy(), dtype=np.float32)
+    jit = np.ascontiguousarray(jitter.numpy(), dtype=np.float32)
+    table = walk_table(octree)
+    counts = np.zeros(z.shape[0], np.int64)
+    voxel_of = np.empty(jit.shape, np.int64)
+    with LOCK:
+        n_blocks = threads()
+        _band_kernel(
+            o, d, z, jit, n_free, band_m, step_m, octree.voxel_size_m, table.keys, table.ids, n_blocks, counts, voxel_of
+        )
+        n = int(counts.sum())
+        points, t = np.empty((n, 3), np.float32), np.empty(n, np.float32)
+        ray, voxel = np.empty(n, np.int64), np.empty(n, np.int64)
+        offsets = np.cumsum(counts) - counts
+        _band_fill(o, d, z, jit, n_free, band_m, step_m, voxel_of, offsets, n_blocks, points, t, ray, voxel)
+    return tuple(torch.from_numpy(a) for a in (points, t, ray, voxel))  # type: ignore[return-value]
