@@ -63,4 +63,4 @@ def test_tiled_decoder_matches_a_plain_pass(layers: int) -> None:
     out.backward(grad)
     torch.testing.assert_close(x_tiled.grad, x_plain.grad, rtol=1e-5, atol=1e-6)
     for p, g in zip(net.parameters(), plain, strict=True):
-        torch.testing.assert_close(p.grad, g, rtol=0, atol=1e-6 * float(g.abs().max()))  # sums of 10k terms
+        torch.testing.assert_close(p.grad, g, rtol=0, atol=1e-5 * float(g.abs().max()))  # float32 sums of 10k terms
