@@ -175,7 +175,7 @@ class Mapper:
         with timer("forward"):
             sdf = self.field.sdf(samples.points, samples.voxel)  # (S,) truncation units
             weights = render_weights(samples, sdf, self.cfg.truncation_m, self.cfg.render_temperature)  # (S,)
-            live = live_samples(weights)  # (S',)
+            live = live_samples(samples, weights)  # (S',)
             rgb = self.field.color(samples.points[live])  # (S',3)
             render = composite(samples, weights, rgb, live)
             terms = mapping_losses(samples, sdf, render, batch.rgb, batch.depth, self.cfg)

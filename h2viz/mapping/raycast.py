@@ -22,7 +22,7 @@ from h2viz.config import MappingConfig
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.rays import pixel_rays
-from h2viz.mapping.rendering import composite, render_weights, segment_sum
+from h2viz.mapping.rendering import composite, live_samples, render_weights, segment_sum
 from h2viz.mapping.sampling import Samples, sample_rays
 from h2viz.mapping.surface import MLP_ROWS, SearchParams, colour, prior_samples, weighted_samples
 
@@ -31,10 +31,6 @@ CHUNK_RAYS = 65536
 HIT_WEIGHT = 1e-2
 """A ray shows a surface when its rendering weights sum above this (a crossing sums to ~0.25 or more); rays
 that only pass near surfaces, with tiny weights and meaningless depths, render empty."""
-COLOUR_SHARE = 1e-2
-"""Colour is the weighted mean over the samples carrying at least this share of their ray's rendering weight
-(the others lie within a centimetre or two of them on the same surface)."""
-
 
 @dataclass(frozen=True)
 class RenderParams:
@@ -86,13 +82,6 @@ def sdf_gradient(field: HybridField, points: torch.Tensor, voxel: torch.Tensor, 
     return torch.nn.functional.normalize(grad, dim=1)
 
 
-def colour_samples(samples: Samples, weights: torch.Tensor) -> torch.Tensor:
-    """Indices (S',) of the samples whose weight is at least COLOUR_SHARE of their ray's: the colour network
-    runs only there."""
-    total = segment_sum(weights, samples.ray, samples.n_rays)  # (R,)
-    return torch.nonzero(weights > COLOUR_SHARE * total[samples.ray])[:, 0]
-
-
 def shade(
     field: HybridField,
     octree: VoxelOctree,
@@ -107,9 +96,8 @@ def shade(
     weights = render_weights(samples, sdf, params.truncation_m, params.temperature)  # (S,)
     hit = segment_sum(weights, samples.ray, samples.n_rays) > HIT_WEIGHT  # (R,)
     if mode == "rgb":
-        live = colour_samples(samples, weights)  # (S',)
-        kept = samples.select(live)
-        return composite(kept, weights[live], colour(field, kept.points)).rgb * hit[:, None]
+        live = live_samples(samples, weights)  # (S',)
+        return composite(samples, weights, colour(field, samples.points[live]), live).rgb * hit[:, None]
     depth = composite(samples, weights, None).depth * hit  # (R,)
     if mode != "normal":
         return depth
