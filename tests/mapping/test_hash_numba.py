@@ -216,3 +216,20 @@ def test_warmup_compiles_both_kernels() -> None:
     assert hash_numba.warmup() >= 0.0
     assert len(hash_numba._forward_kernel.signatures) >= 1
     assert len(hash_numba._table_grad_kernel.signatures) >= 1
+
+
+def test_table_gradient_buffer_is_reused_only_when_no_gradient_holds_it() -> None:
+    shape = SHAPES[2]
+    tables = _tables(shape, torch.float32, seed=21)
+    x = _points(100, seed=22, cell_m=shape[3]).float()
+    kept = []
+    for scale in (1.0, 2.0):  # gradients kept alive: each pass gets its own memory
+        kept.append(torch.autograd.grad((hash_numba.fused_encode(x, tables, _cells(shape)) * scale).sum(), tables)[0])
+    torch.testing.assert_close(kept[1], 2.0 * kept[0])
+    pointers = set()
+    for _ in range(3):  # the optimiser pattern: grad dropped before every pass, one buffer serves them all
+        tables.grad = None
+        hash_numba.fused_encode(x, tables, _cells(shape)).sum().backward()
+        pointers.add(tables.grad.data_ptr())
+        torch.testing.assert_close(tables.grad, kept[0])
+    assert len(pointers) == 1
