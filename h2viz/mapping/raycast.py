@@ -32,6 +32,7 @@ HIT_WEIGHT = 1e-2
 """A ray shows a surface when its rendering weights sum above this (a crossing sums to ~0.25 or more); rays
 that only pass near surfaces, with tiny weights and meaningless depths, render empty."""
 
+
 @dataclass(frozen=True)
 class RenderParams:
     t_far: float  # metres along the camera axis
@@ -70,6 +71,10 @@ def locate(octree: VoxelOctree, points: torch.Tensor) -> torch.Tensor:
     return ids
 
 
+NORMAL_STEP_M = 1e-3
+"""Central-difference step of the rendered normals (a tenth of the finest hash cell at the defaults)."""
+
+
 def sdf_gradient(field: HybridField, points: torch.Tensor, voxel: torch.Tensor, rows: int = MLP_ROWS) -> torch.Tensor:
     """Unit normals (N,3) as the normalised SDF gradient (autograd through the field, `rows` points at a time)."""
     grads = []
@@ -79,6 +84,27 @@ def sdf_gradient(field: HybridField, points: torch.Tensor, voxel: torch.Tensor, 
             (grad,) = torch.autograd.grad(field.sdf(p, voxel[i : i + rows]).sum(), p)
             grads.append(grad)
     grad = torch.cat(grads) if grads else torch.zeros_like(points)
+    return torch.nn.functional.normalize(grad, dim=1)
+
+
+def sdf_gradient_fd(
+    field: HybridField, octree: VoxelOctree, points: torch.Tensor, voxel: torch.Tensor, step_m: float = NORMAL_STEP_M
+) -> torch.Tensor:
+    """Unit normals (N,3) by central differences of the SDF (6 gradient-free evaluations a point, which run the
+    fused CPU kernels: ~10x faster than autograd through the field). An offset point outside the map keeps
+    its point's voxel."""
+    offsets = torch.cat([torch.eye(3), -torch.eye(3)]).to(points) * step_m  # (6,3)
+    probe = (points[None] + offsets[:, None]).reshape(-1, 3)  # (6N,3)
+    vid = voxel.repeat(6)  # (6N,) most probes stay in their point's voxel
+    local = (probe - field.voxel_origin[vid]) / octree.voxel_size_m
+    out = ((local < 0) | (local >= 1)).any(dim=1)
+    moved = octree.lookup_points(probe[out])
+    vid[out] = torch.where(moved >= 0, moved, vid[out])
+    sdf = torch.cat(
+        [field.sdf(probe[i : i + MLP_ROWS], vid[i : i + MLP_ROWS]) for i in range(0, probe.shape[0], MLP_ROWS)]
+    )
+    sdf = sdf.view(6, -1)  # (6,N)
+    grad = (sdf[:3] - sdf[3:]).T  # (N,3), the 1/(2 step) factor drops out in the normalisation
     return torch.nn.functional.normalize(grad, dim=1)
 
 
@@ -107,7 +133,7 @@ def shade(
         vid = locate(octree, pts)
         ok = vid >= 0
         n = torch.zeros_like(pts)
-        n[ok] = sdf_gradient(field, pts[ok], vid[ok])
+        n[ok] = sdf_gradient_fd(field, octree, pts[ok], vid[ok])
         normals[hit] = n
     return normals
 
