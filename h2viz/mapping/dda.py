@@ -28,19 +28,13 @@ PROBE, COARSE, TRUSTED = 1, 2, 4  # lattice flags
 MODES = {"trust": 0, "distrust": 1, "prior": 2}
 
 
-jit = njit
-inline_jit = njit(inline=True)
-jit_nogil = njit(nogil=True)
-parallel_jit = njit(parallel=True)
-
-
-@jit
+@njit
 def _slot(key: int, mask: int) -> int:
     h = key * _HASH_MULT
     return (h ^ (h >> 29)) & mask
 
 
-@jit
+@njit
 def build_table(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Hash table (keys (cap,), ids (cap,)) with cap a power of two >= 2 * len(keys); -1 marks empty slots."""
     cap = 16
@@ -57,7 +51,7 @@ def build_table(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return table_keys, table_ids
 
 
-@inline_jit
+@njit(inline=True)
 def lookup(table_keys: np.ndarray, table_ids: np.ndarray, cx: int, cy: int, cz: int) -> int:
     """Voxel id of cell (cx, cy, cz), -1 when not allocated."""
     key = ((cx + OFFSET) << 42) | ((cy + OFFSET) << 21) | (cz + OFFSET)
@@ -70,7 +64,7 @@ def lookup(table_keys: np.ndarray, table_ids: np.ndarray, cx: int, cy: int, cz: 
     return -1
 
 
-@inline_jit
+@njit(inline=True)
 def clip(o: np.ndarray, d: np.ndarray, box: np.ndarray, t0: float, t1: float) -> tuple[float, float]:
     """[t0, t1] clipped to the box (2,3) [lo, hi] in metres (empty when t0 >= t1)."""
     for a in range(3):
@@ -82,7 +76,7 @@ def clip(o: np.ndarray, d: np.ndarray, box: np.ndarray, t0: float, t1: float) ->
     return t0, t1
 
 
-@inline_jit
+@njit(inline=True)
 def _axis(o: float, d: float, t: float, vs: float) -> tuple[int, int, float, float]:
     """One axis of a walk at t: cell, step sign, t of the next cell boundary, t between boundaries."""
     c = np.floor((o + d * t) / vs)
@@ -93,7 +87,7 @@ def _axis(o: float, d: float, t: float, vs: float) -> tuple[int, int, float, flo
     return np.int64(c), 0, np.inf, np.inf
 
 
-@inline_jit
+@njit(inline=True)
 def _free_cells(table: WalkTable, cx: int, cy: int, cz: int) -> int:
     """Chessboard distance, in skip cells, from the skip cell of voxel cell (cx, cy, cz) to an allocated voxel."""
     g, lo, sh = table.skip, table.skip_lo, table.skip_shift
@@ -103,7 +97,7 @@ def _free_cells(table: WalkTable, cx: int, cy: int, cz: int) -> int:
     return g[ix, iy, iz]
 
 
-@inline_jit
+@njit(inline=True)
 def walk_begin(o: np.ndarray, d: np.ndarray, t: float, vs: float) -> Any:
     """Walk state at t: (t, cell x y z, step sign x y z, next boundary t x y z, t between boundaries x y z)."""
     cx, sx, nx, dx = _axis(o[0], d[0], t, vs)
@@ -112,7 +106,7 @@ def walk_begin(o: np.ndarray, d: np.ndarray, t: float, vs: float) -> Any:
     return t, cx, cy, cz, sx, sy, sz, nx, ny, nz, dx, dy, dz
 
 
-@inline_jit
+@njit(inline=True)
 def walk_next(o: np.ndarray, d: np.ndarray, t1: float, table: WalkTable, state: Any) -> Any:
     """The next allocated voxel the ray crosses before t1, as (id, t_in, t_out, cx, cy, cz, state); id -1
     at the end. Steps cell to cell across the nearest boundary (first axis on ties) and jumps over empty
@@ -140,7 +134,7 @@ def walk_next(o: np.ndarray, d: np.ndarray, t1: float, table: WalkTable, state: 
     return -1, t1, t1, 0, 0, 0, (t, cx, cy, cz, sx, sy, sz, nx, ny, nz, dx, dy, dz)
 
 
-@inline_jit
+@njit(inline=True)
 def trilinear(corner: np.ndarray, fx: float, fy: float, fz: float) -> float:
     """Blend of 8 corner values (x,y,z bits 4,2,1) at local coordinates clamped to [0, 1]."""
     fx, fy, fz = min(max(fx, 0.0), 1.0), min(max(fy, 0.0), 1.0), min(max(fz, 0.0), 1.0)
@@ -151,7 +145,7 @@ def trilinear(corner: np.ndarray, fx: float, fy: float, fz: float) -> float:
     return (c00 * (1 - fy) + c10 * fy) * (1 - fz) + (c01 * (1 - fy) + c11 * fy) * fz
 
 
-@parallel_jit
+@njit(parallel=True)
 def hits_kernel(o: np.ndarray, d: np.ndarray, t_near: np.ndarray, t_far: np.ndarray, table: WalkTable,
                  offsets: np.ndarray, write: bool, out_voxel: np.ndarray, out_t: np.ndarray,
                  n_blocks: int) -> np.ndarray:  # fmt: skip
@@ -172,13 +166,13 @@ def hits_kernel(o: np.ndarray, d: np.ndarray, t_near: np.ndarray, t_far: np.ndar
     return counts
 
 
-@inline_jit
+@njit(inline=True)
 def _near_miss(prev_trusted: bool, prev_prior: float, trusted: bool, prior: float, probe_below: float) -> bool:
     """Is the previous sample the closest approach of trusted priors to zero (without crossing it)?"""
     return prev_trusted and 0.0 <= prev_prior < probe_below and (not trusted or prior > prev_prior)
 
 
-@inline_jit
+@njit(inline=True)
 def _ray_lattice(o: np.ndarray, d: np.ndarray, t1: float, table: WalkTable, priors: np.ndarray,
                  corner_ids: np.ndarray, trusted: np.ndarray, step: float, mode: int, probe_below: float,
                  after_m: float, pos: int, out_t: np.ndarray, out_voxel: np.ndarray, out_prior: np.ndarray,
@@ -224,7 +218,7 @@ def _ray_lattice(o: np.ndarray, d: np.ndarray, t1: float, table: WalkTable, prio
     return n, t_stop
 
 
-@inline_jit
+@njit(inline=True)
 def _most_samples(o: np.ndarray, d: np.ndarray, t1: float, table: WalkTable, step: float) -> int:
     """An upper bound of one ray's lattice samples: one per step plus one per cell crossed."""
     t0, t1 = clip(o, d, table.box, 0.0, t1)
@@ -232,7 +226,7 @@ def _most_samples(o: np.ndarray, d: np.ndarray, t1: float, table: WalkTable, ste
     return int(length / step + length * (abs(d[0]) + abs(d[1]) + abs(d[2])) / table.voxel_size) + 4
 
 
-@jit_nogil
+@njit(nogil=True)
 def lattice_chunk(o: np.ndarray, d: np.ndarray, t_far: np.ndarray, r0: int, r1: int, table: WalkTable,
                   priors: np.ndarray, corner_ids: np.ndarray, trusted: np.ndarray, step: float, mode: int,
                   probe_below: float, after_m: float) -> Any:  # fmt: skip
@@ -259,7 +253,7 @@ def lattice_chunk(o: np.ndarray, d: np.ndarray, t_far: np.ndarray, r0: int, r1: 
     return t[:pos], voxel[:pos], prior[:pos], flags[:pos], counts, crossing_end
 
 
-@inline_jit
+@njit(inline=True)
 def _grown(a: np.ndarray, cap: int) -> np.ndarray:
     out = np.empty(cap, a.dtype)
     out[: a.shape[0]] = a

@@ -45,11 +45,7 @@ PREFETCH_AHEAD = 8
 _LOCK = threading.Lock()  # a parallel region must not be entered from two threads at once (workqueue layer)
 
 
-_jit = njit
-_parallel_jit = njit(parallel=True)
-
-
-@_jit
+@njit
 def _corners(x0: float, x1: float, x2: float, cell: float, mask: int) -> tuple[Any, Any]:
     """Table rows (8 ints in [0, T)) and trilinear weights (8 floats) of a point's cell, corner 4dx+2dy+dz."""
     px, py, pz = x0 / cell, x1 / cell, x2 / cell
@@ -86,7 +82,7 @@ def _prefetch(typingctx: Any, table: Any, row: Any) -> Any:
     return types.void(table, row), codegen
 
 
-@_jit
+@njit
 def _prefetch_corners(x: np.ndarray, p: int, table: np.ndarray, cell: float, mask: int) -> None:
     """Prefetch the 8 table rows (T,F) of point p's cell."""
     rows, _ = _corners(x[p, 0], x[p, 1], x[p, 2], cell, mask)
@@ -94,7 +90,7 @@ def _prefetch_corners(x: np.ndarray, p: int, table: np.ndarray, cell: float, mas
         _prefetch(table, rows[c])
 
 
-@_jit
+@njit
 def _blend_block(
     x: np.ndarray, table: np.ndarray, cell: float, start: int, stop: int, col: int, out: np.ndarray
 ) -> None:
@@ -119,7 +115,7 @@ def _blend_block(
                 out[p, col + f] = a
 
 
-@_jit
+@njit
 def _scatter_level(x: np.ndarray, grad_out: np.ndarray, cell: float, col: int, grad: np.ndarray) -> None:
     """grad (T,F) <- zeros, then every point's upstream gradient spread onto its 8 corner rows."""
     flat = grad.reshape(-1)
@@ -141,7 +137,7 @@ def _scatter_level(x: np.ndarray, grad_out: np.ndarray, cell: float, col: int, g
                     grad[r[c], f] += w[c] * up
 
 
-@_parallel_jit
+@njit(parallel=True)
 def _forward_kernel(x: np.ndarray, tables: np.ndarray, cells: np.ndarray, n_blocks: int, out: np.ndarray) -> None:
     """out (N, L*F) <- features of x (N,3) float64 from tables (L,T,F); blocks of points x levels in parallel."""
     n, n_levels, n_feat = x.shape[0], tables.shape[0], tables.shape[2]
@@ -151,7 +147,7 @@ def _forward_kernel(x: np.ndarray, tables: np.ndarray, cells: np.ndarray, n_bloc
         _blend_block(x, tables[level], cells[level], start, stop, level * n_feat, out)
 
 
-@_parallel_jit
+@njit(parallel=True)
 def _table_grad_kernel(
     x: np.ndarray, grad_out: np.ndarray, cells: np.ndarray, level_order: np.ndarray, grad: np.ndarray
 ) -> None:
@@ -168,9 +164,6 @@ def level_order(n_levels: int) -> np.ndarray:
     ends = [(i, n_levels - 1 - i) for i in range((n_levels + 1) // 2)]
     order = [level for pair in ends for level in dict.fromkeys(pair)]
     return np.asarray(order, dtype=np.int64)
-
-
-_threads = threads
 
 
 def _points64(x: Tensor) -> Tensor:
@@ -196,7 +189,7 @@ def forward_features(x64: Tensor, tables: Tensor, cell_sizes_m: Sequence[float])
     cells = np.asarray(cell_sizes_m, dtype=np.float64)
     tab = tables.detach().contiguous().numpy()
     with _LOCK:
-        _forward_kernel(x64.numpy(), tab, cells, _threads(), out.numpy())
+        _forward_kernel(x64.numpy(), tab, cells, threads(), out.numpy())
     return out
 
 
@@ -215,7 +208,7 @@ def table_gradient(
     grad = torch.empty(table_shape, dtype=grad_out.dtype) if out is None else out  # zero-filled by the kernel
     cells = np.asarray(cell_sizes_m, dtype=np.float64)
     with _LOCK:
-        _threads()
+        threads()
         _table_grad_kernel(x64.numpy(), grad_out.contiguous().numpy(), cells, level_order(len(cells)), grad.numpy())
     return grad
 

@@ -13,7 +13,8 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from h2viz.mapping.dda import COARSE, PROBE, TRUSTED, inline_jit, jit, parallel_jit
+from h2viz.mapping.dda import COARSE, PROBE, TRUSTED
+from h2viz.mapping.jit import njit
 from h2viz.mapping.raymarch import Lattice
 
 
@@ -35,7 +36,7 @@ class Rules(NamedTuple):
     seeds: float  # the samples around a prior crossing lie beyond the walk's end (crossing_end) - this
 
 
-@inline_jit
+@njit(inline=True)
 def _walk(i: int, step: int, end: int, s_i: float, lat: Lattice, sdf: np.ndarray, t_limit: float, near: float,
           right: bool, out: np.ndarray) -> tuple[int, int]:  # fmt: skip
     """Mark unevaluated neighbours of evaluated sample i (SDF s_i) on one side (step -1 or +1, stopping
@@ -57,7 +58,7 @@ def _walk(i: int, step: int, end: int, s_i: float, lat: Lattice, sdf: np.ndarray
     return n, j - step
 
 
-@inline_jit
+@njit(inline=True)
 def _mark(j: int, out: np.ndarray, n: int, lo: int, hi: int) -> tuple[int, int, int]:
     """Mark sample j; returns the updated (newly marked, lowest, highest index)."""
     n += not out[j]
@@ -65,7 +66,7 @@ def _mark(j: int, out: np.ndarray, n: int, lo: int, hi: int) -> tuple[int, int, 
     return n, min(lo, j), max(hi, j)
 
 
-@jit  # not inlined: numba drops writes to a NamedTuple's arrays made directly in a parallel loop's body
+@njit  # not inlined: numba drops writes to a NamedTuple's arrays made directly in a parallel loop's body
 def _propose_ray(r: int, lat: Lattice, frontier: np.ndarray, f0: int, f1: int, st: SearchState, rules: Rules,
                  out: np.ndarray) -> tuple[int, int, int]:  # fmt: skip
     """Mark in `out` what ray r evaluates next, given the samples it evaluated last round (frontier[f0:f1]).
@@ -103,7 +104,7 @@ def _propose_ray(r: int, lat: Lattice, frontier: np.ndarray, f0: int, f1: int, s
     return n, lo, hi
 
 
-@parallel_jit
+@njit(parallel=True)
 def propose_kernel(lat: Lattice, active: np.ndarray, frontier: np.ndarray, f_lo: np.ndarray, st: SearchState,
                    rules: Rules, out: np.ndarray, marked: np.ndarray, lo: np.ndarray,
                    hi: np.ndarray) -> None:  # fmt: skip
@@ -112,7 +113,7 @@ def propose_kernel(lat: Lattice, active: np.ndarray, frontier: np.ndarray, f_lo:
         marked[q], lo[q], hi[q] = _propose_ray(active[q], lat, frontier, f_lo[q], f_lo[q + 1], st, rules, out)
 
 
-@parallel_jit
+@njit(parallel=True)
 def take_marked(marked: np.ndarray, lo: np.ndarray, hi: np.ndarray, out: np.ndarray, offsets: np.ndarray,
                 idx: np.ndarray) -> None:  # fmt: skip
     """idx <- the marked samples, ray-major (active ray q from offsets[q], within [lo[q], hi[q]]); clears the
@@ -125,7 +126,7 @@ def take_marked(marked: np.ndarray, lo: np.ndarray, hi: np.ndarray, out: np.ndar
                     idx[k], k, out[i] = i, k + 1, False
 
 
-@parallel_jit
+@njit(parallel=True)
 def points_kernel(idx: np.ndarray, lat: Lattice, o: np.ndarray, d: np.ndarray, out: np.ndarray) -> None:
     """out (N,3) <- positions of the lattice samples idx (N,), in float32 arithmetic like torch's."""
     for k in numba.prange(idx.shape[0]):
@@ -134,7 +135,7 @@ def points_kernel(idx: np.ndarray, lat: Lattice, o: np.ndarray, d: np.ndarray, o
             out[k, a] = o[r, a] + d[r, a] * tk
 
 
-@parallel_jit
+@njit(parallel=True)
 def count_evaluated(lat: Lattice, keep: np.ndarray, sdf: np.ndarray, n: np.ndarray) -> None:
     """n (R,) <- evaluated samples of each kept ray."""
     for r in numba.prange(lat.start.shape[0]):
@@ -144,7 +145,7 @@ def count_evaluated(lat: Lattice, keep: np.ndarray, sdf: np.ndarray, n: np.ndarr
                 n[r] += not np.isnan(sdf[i])
 
 
-@parallel_jit
+@njit(parallel=True)
 def take_evaluated(lat: Lattice, keep: np.ndarray, sdf: np.ndarray, o: np.ndarray, d: np.ndarray,
                    offsets: np.ndarray, out_t: np.ndarray, out_ray: np.ndarray, out_voxel: np.ndarray,
                    out_sdf: np.ndarray, out_points: np.ndarray) -> None:  # fmt: skip

@@ -19,42 +19,13 @@ import torch
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.jit import njit
 from h2viz.mapping.meshing import ChunkedMesher, ChunkKey
+from h2viz.mapping.prior_numba import blend_range
 from h2viz.types import MeshChunk
 
 FIELD_BATCH = 1 << 16  # points per network call (the activations stay in cache)
 
 
-_jit = njit
-
-
-@_jit
-def _prior_kernel(
-    points: np.ndarray,
-    voxel: np.ndarray,
-    priors: np.ndarray,
-    corner_ids: np.ndarray,
-    origin: np.ndarray,
-    voxel_size: np.float32,
-    out: np.ndarray,
-) -> None:  # pragma: no cover - compiled
-    """out (N,) <- trilinear blend of the 8 corner priors of each point's voxel, as HybridField.prior_sdf."""
-    one, zero = np.float32(1.0), np.float32(0.0)
-    for i in range(points.shape[0]):
-        v = voxel[i]
-        x = min(max((points[i, 0] - origin[v, 0]) / voxel_size, zero), one)
-        y = min(max((points[i, 1] - origin[v, 1]) / voxel_size, zero), one)
-        z = min(max((points[i, 2] - origin[v, 2]) / voxel_size, zero), one)
-        c = corner_ids[v]
-        x00 = priors[c[0]] * (one - x) + priors[c[4]] * x  # corner 4*dx + 2*dy + dz
-        x01 = priors[c[1]] * (one - x) + priors[c[5]] * x
-        x10 = priors[c[2]] * (one - x) + priors[c[6]] * x
-        x11 = priors[c[3]] * (one - x) + priors[c[7]] * x
-        y0 = x00 * (one - y) + x10 * y
-        y1 = x01 * (one - y) + x11 * y
-        out[i] = y0 * (one - z) + y1 * z
-
-
-@_jit
+@njit
 def _residual_kernel(
     feats: np.ndarray, w1: np.ndarray, b1: np.ndarray, w2: np.ndarray, b2: np.float32, out: np.ndarray
 ) -> None:  # pragma: no cover - compiled
@@ -106,7 +77,8 @@ class FrozenField:
         out = np.empty(len(points), dtype=np.float32)
         pts = np.ascontiguousarray(points, dtype=np.float32)
         vox = np.ascontiguousarray(voxel_ids, dtype=np.int64)
-        _prior_kernel(pts, vox, self._priors, self._corner_ids, self._origin, np.float32(self.field.voxel_size_m), out)
+        inv_vs = 1.0 / self.field.voxel_size_m
+        blend_range(pts, vox, self._origin, self._corner_ids, self._priors, inv_vs, 0, len(pts), out)
         return out
 
     @torch.no_grad()

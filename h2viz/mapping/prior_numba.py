@@ -31,6 +31,33 @@ def _weights(points: np.ndarray, p: int, origin: np.ndarray, v: int, inv_vs: np.
     return x, y, z
 
 
+@njit
+def blend_range(
+    points: np.ndarray,
+    voxel: np.ndarray,
+    origin: np.ndarray,
+    corners: np.ndarray,
+    priors: np.ndarray,
+    inv_vs: float,
+    start: int,
+    stop: int,
+    out: np.ndarray,
+) -> None:
+    """out[start:stop] <- trilinear blend of the corner priors (C,) (corner order 4x+2y+z) at points (N,3) in
+    voxels (N,); one thread (the meshing thread calls it for whole batches)."""
+    s = np.float32(inv_vs)
+    one = np.float32(1.0)
+    for p in range(start, stop):
+        v = voxel[p]
+        x, y, z = _weights(points, p, origin, v, s)
+        c = corners[v]
+        v00 = priors[c[0]] * (one - z) + priors[c[1]] * z
+        v01 = priors[c[2]] * (one - z) + priors[c[3]] * z
+        v10 = priors[c[4]] * (one - z) + priors[c[5]] * z
+        v11 = priors[c[6]] * (one - z) + priors[c[7]] * z
+        out[p] = (v00 * (one - y) + v01 * y) * (one - x) + (v10 * (one - y) + v11 * y) * x
+
+
 @njit(parallel=True)
 def _forward_kernel(
     points: np.ndarray,
@@ -42,20 +69,12 @@ def _forward_kernel(
     n_blocks: int,
     out: np.ndarray,
 ) -> None:
-    """out (N,) <- trilinear blend of the corner priors (corner order 4x+2y+z) at points (N,3) in voxel (N,)."""
+    """out (N,) <- `blend_range` over blocks of points in parallel."""
     n = points.shape[0]
-    s = np.float32(inv_vs)
     for block in numba.prange(n_blocks):
-        for p in range(block * n // n_blocks, (block + 1) * n // n_blocks):
-            v = voxel[p]
-            x, y, z = _weights(points, p, origin, v, s)
-            c = corners[v]
-            one = np.float32(1.0)
-            v00 = priors[c[0]] * (one - z) + priors[c[1]] * z
-            v01 = priors[c[2]] * (one - z) + priors[c[3]] * z
-            v10 = priors[c[4]] * (one - z) + priors[c[5]] * z
-            v11 = priors[c[6]] * (one - z) + priors[c[7]] * z
-            out[p] = (v00 * (one - y) + v01 * y) * (one - x) + (v10 * (one - y) + v11 * y) * x
+        blend_range(
+            points, voxel, origin, corners, priors, inv_vs, block * n // n_blocks, (block + 1) * n // n_blocks, out
+        )
 
 
 @njit

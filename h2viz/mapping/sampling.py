@@ -98,10 +98,9 @@ def band_samples(
     R, dev = depth.shape[0], depth.device
     n_band = int(round((band_m + truncation_m) / step_m))
     jitter = torch.rand(R, n_band + n_free, generator=generator)  # (R,F+B) reproducible on any device
-    if fused and dev.type == "cpu" and band_kernels() is not None:
-        points, t, ray, voxel = band_kernels().band_candidates(
-            octree, origins, dirs, depth, jitter, n_free, band_m, step_m
-        )
+    kernels = band_kernels() if fused and dev.type == "cpu" else None
+    if kernels is not None:
+        points, t, ray, voxel = kernels.band_candidates(octree, origins, dirs, depth, jitter, n_free, band_m, step_m)
         return Samples(points, t, ray, voxel, R)
     jitter = jitter.to(dev)
     k = torch.arange(n_band, device=dev, dtype=depth.dtype)

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from h2viz.errors import H2vizError
 from h2viz.mapping.encoding import HashGrid, encode, hash_grid_reference, level_cell_sizes
+from h2viz.mapping.jit import njit
 
 numba = pytest.importorskip("numba")
 hash_numba = pytest.importorskip("h2viz.mapping.hash_numba")
@@ -208,7 +209,7 @@ def test_kernels_compile_without_a_writable_cache(monkeypatch: pytest.MonkeyPatc
 
     with pytest.raises(RuntimeError, match="cannot cache"):
         numba.njit(cache=True)(double_all)
-    kernel = hash_numba._parallel_jit(double_all)
+    kernel = njit(parallel=True)(double_all)
     assert kernel(np.arange(4.0)).tolist() == [0.0, 2.0, 4.0, 6.0]
 
 
