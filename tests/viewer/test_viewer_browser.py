@@ -11,6 +11,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 import trimesh
 
@@ -103,11 +105,19 @@ def test_camera_motion_brings_a_rendered_background_with_depth(live: Live) -> No
     page.mouse.up()
     with_depth = lambda: [m for m in wire.of_type("BackgroundImageMessage", since=start) if m.fields.get("depth_data")]
     wait_until(page, with_depth, what="a background image with depth")
-    widths = {w for _, w, _ in live.mapper.rendered}
-    assert {60, 240} <= widths  # a quick low-resolution view, then the refined one
+    # a quick low-resolution view first, then the refined one once the camera rests
+    widths = lambda: {w for _, w, _ in live.mapper.rendered}
+    assert 60 in widths()
+    wait_until(page, lambda: 240 in widths(), what="the refined 240-pixel render")
+    image_widths = lambda: {jpeg_width(m.fields["rgb_data"]) for m in with_depth()}
+    wait_until(page, lambda: {60, 240} <= image_widths(), what="the refined background in the page")
     page.get_by_role("combobox", name="Render").click()
     page.get_by_role("option", name="off", exact=True).click()
     page.get_by_role("tab", name="Mapping").click()
+
+
+def jpeg_width(data: bytes) -> int:
+    return int(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED).shape[1])
 
 
 def test_export_downloads_a_valid_mesh(live: Live, tmp_path: Path) -> None:
