@@ -20,9 +20,12 @@ def njit(
     parallel: bool = False,
     fastmath: bool = False,
     inline: bool = False,
-    nogil: bool = False,
+    nogil: bool = True,
 ) -> Any:
-    """numba.njit(cache=True, ...); usable as `@njit` or `@njit(parallel=True)`."""
+    """numba.njit(cache=True, nogil=True, ...); usable as `@njit` or `@njit(parallel=True)`.
+
+    Kernels release the GIL: the meshing thread's kernels then never hold up the mapping thread's Python.
+    """
     opts: dict[str, Any] = {"parallel": parallel, "fastmath": fastmath, "nogil": nogil}
     if inline:
         opts["inline"] = "always"
