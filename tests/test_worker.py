@@ -389,3 +389,20 @@ def test_each_frame_reaches_the_snapshots_through_the_mesh_thread(make_worker: F
     assert len(seen_versions) >= 4  # chunk updates streamed while mapping, not only at the end
     records = list(worker.meshing.passes)
     assert records and all(r.finished >= r.submitted for r in records)
+
+
+def test_live_mesh_is_coarse_and_downloads_use_the_mapping_resolution(make_worker: Factory) -> None:
+    cfg = Config()
+    cfg.mapping = tiny_mapping_config()  # mesh_resolution 4: what downloads use
+    cfg.viewer.mesh_resolution = 2  # the live mesh
+    mapper = recording_mapper(cfg.mapping)
+    worker = make_worker(BoxRoomSource(n=5), mapper, cfg=cfg)
+    assert worker.wait_finished(60) and not worker.errors
+    assert mapper.mesh_resolution == 2
+    live = worker.slot.get()[1].chunks
+    live_faces = sum(len(c.faces) for c in live.values())
+    data = worker.submit("export", format="ply").result(60)
+    full = trimesh.load(io.BytesIO(data), file_type="ply", force="mesh", process=False)
+    # twice the samples per voxel edge: about four times the triangles of the same surface
+    assert 3.0 < len(full.faces) / live_faces < 5.0
+    assert all(mapper.mesh_chunks()[k] is c for k, c in live.items())  # the live chunks are left as they were

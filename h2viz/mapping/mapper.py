@@ -228,13 +228,17 @@ class Mapper:
         ones."""
         if not self.touched.any() and self.mesher.stale(self.frames_done) == 0:
             return None
+        self.version += 1
+        job = self._frozen_job(self.mesher, refresh_s, whole)
+        self.touched[:] = False
+        return job
+
+    def _frozen_job(self, mesher: ChunkedMesher, refresh_s: float, whole: bool) -> MeshJob:
         meshable = np.flatnonzero(self.priors.initialised(self.octree.n_voxels))  # (V',) voxel ids
         dirty = self.touched[meshable] & (not whole)
-        self.touched[:] = False
-        self.version += 1
         field = FrozenField(self.field, self.cfg.truncation_m)
         coords = self.octree.voxel_coords()[meshable]
-        return MeshJob(self.mesher, coords, meshable, dirty, field, self.version, self.frames_done, refresh_s, whole)
+        return MeshJob(mesher, coords, meshable, dirty, field, self.version, self.frames_done, refresh_s, whole)
 
     def update_mesh(self) -> None:
         """Re-mesh every chunk from the field now, on this thread, when anything changed since the last time."""
@@ -246,10 +250,16 @@ class Mapper:
         """The current mesh chunks (safe to call while a mesh job runs on another thread)."""
         return self.mesher.chunks
 
-    def mesh(self) -> trimesh.Trimesh:
-        """Welded mesh of the whole map, every chunk re-meshed from the current field first when needed."""
-        self.update_mesh()
-        return merge_chunks(self.mesher.chunks)
+    def mesh(self, resolution: int | None = None) -> trimesh.Trimesh:
+        """Welded mesh of the whole map, every chunk re-meshed from the current field first when needed.
+
+        A `resolution` other than the live mesher's meshes the map once with a mesher of its own, leaving the
+        live chunks as they are (a coarse live mesh, a full-resolution download)."""
+        if resolution is None or int(resolution) == self.mesher.resolution:
+            self.update_mesh()
+            return merge_chunks(self.mesher.chunks)
+        mesher = ChunkedMesher(self.cfg.voxel_size_m, int(resolution), self.cfg.chunk_voxels)
+        return merge_chunks(self._frozen_job(mesher, 0.0, whole=True).run())
 
     def export_mesh(self, path: Path) -> None:
         export_mesh(self.mesh(), Path(path))

@@ -76,11 +76,17 @@ class MeshLayer(Layer):
         if self.enabled and self._last is not None:
             self.sync(self._last)
 
+    def behind(self, snap: MapSnapshot) -> bool:
+        """The shown mesh differs from `snap`'s (only an enabled layer can be behind)."""
+        diff = diff_chunks(self.drawn, snap.chunks)
+        return self.enabled and bool(diff.changed or diff.removed)
+
     def sync(self, snap: MapSnapshot) -> None:
         diff = diff_chunks(self.drawn, snap.chunks)
-        for key in set(self.handles) - set(snap.chunks):
-            self.handles.pop(key).remove()
-            self.drawn.pop(key, None)
+        for key in diff.removed:
+            self.drawn.pop(key)
+            if key in self.handles:
+                self.handles.pop(key).remove()
         for key in diff.changed:
             chunk = snap.chunks[key]
             self.drawn[key] = chunk

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import viser
 
 from h2viz.config import Config
@@ -123,8 +124,15 @@ class Panels:
     def _build_settings(self, gui: viser.GuiApi) -> None:
         s = self.worker.settings
         with gui.add_folder("Settings"):
-            rate = gui.add_slider("Mesh updates / s", 0.2, 5.0, 0.1, float(s.mesh_update_hz))
-            res = gui.add_slider("Marching cubes res.", 2, 16, 1, int(self.cfg.mapping.mesh_resolution))
+            rate = gui.add_slider(
+                "Mesh updates / s",
+                0.0,
+                5.0,
+                0.1,
+                float(np.clip(s.mesh_update_hz, 0.0, 5.0)),
+                hint=f"0: no live mesh, re-meshed every {s.mesh_every} frames instead",
+            )
+            res = gui.add_slider("Marching cubes res.", 2, 16, 1, int(self.cfg.viewer.mesh_resolution))
         rate.on_update(lambda e: self._command(e, "set", mesh_update_hz=float(rate.value)))
         res.on_update(lambda e: self._command(e, "set", mesh_resolution=int(res.value)))
 

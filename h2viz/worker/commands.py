@@ -12,6 +12,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
+from h2viz.config import Config
 from h2viz.errors import H2vizError
 from h2viz.types import Command
 from h2viz.worker import requests
@@ -28,6 +29,7 @@ class CommandServing:
     """The command half of MappingWorker (which provides the state declared here)."""
 
     mapper: Mapper
+    cfg: Config
     settings: WorkerSettings
     _feed: FrameFeed
     _commands: queue.Queue[Command]
@@ -81,8 +83,11 @@ class CommandServing:
             raise H2vizError(f"unknown command '{cmd.kind}'; use one of {', '.join(COMMANDS)}")
 
     def _export(self, args: dict[str, Any]) -> bytes:
-        self._remesh()
-        return requests.export_mesh_bytes(self.mapper, str(args.get("format", "ply")))
+        """The mesh at the full resolution of cfg.mapping (the live mesh is re-meshed whole when it has it)."""
+        resolution = self.cfg.mapping.mesh_resolution
+        if resolution == self.mapper.mesh_resolution:
+            self._remesh()
+        return requests.export_mesh_bytes(self.mapper, str(args.get("format", "ply")), resolution)
 
     def _set_paused(self, paused: bool) -> bool:
         self._paused = paused

@@ -54,6 +54,7 @@ class MappingWorker(CommandServing):
         self, source: FrameSource, mapper: Mapper, cfg: Config, settings: WorkerSettings | None = None
     ) -> None:
         self.source, self.mapper, self.cfg = source, mapper, cfg
+        self.mapper.mesh_resolution = cfg.viewer.mesh_resolution  # the live mesh; downloads use cfg.mapping's
         self.settings = settings or settings_from_config(cfg)
         self.slot: LatestSlot[MapSnapshot] = LatestSlot()
         self.mapped_at: dict[int, float] = {}  # frame index -> time.time() when its mapping finished

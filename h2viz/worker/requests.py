@@ -98,12 +98,13 @@ def render_bands(mapper: Mapper, args: dict[str, Any]) -> Generator[None, None, 
     return RenderedView(image, depth_m, mode, spent)
 
 
-def export_mesh_bytes(mapper: Mapper, fmt: str) -> bytes:
-    """The welded map mesh as PLY or GLB bytes."""
+def export_mesh_bytes(mapper: Mapper, fmt: str, resolution: int | None = None) -> bytes:
+    """The welded map mesh as PLY or GLB bytes, at `resolution` marching-cubes samples per voxel edge
+    (default: the live mesh's)."""
     fmt = fmt.lower().lstrip(".")
     if fmt not in EXPORT_FORMATS:
         raise H2vizError(f"export: unknown mesh format '{fmt}'; use one of {', '.join(EXPORT_FORMATS)}")
-    data = mapper.mesh().export(file_type=fmt)
+    data = mapper.mesh(resolution).export(file_type=fmt)
     return data if isinstance(data, bytes) else str(data).encode()
 
 

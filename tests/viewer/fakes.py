@@ -194,7 +194,7 @@ class FakeMapper:
             return np.where(known[..., None], normals, 0).astype(np.float32)
         return np.where(known[..., None], room_color(hits) / 255.0, 0).astype(np.float32)
 
-    def mesh(self) -> trimesh.Trimesh:
+    def mesh(self, resolution: int | None = None) -> trimesh.Trimesh:
         parts = [
             trimesh.Trimesh(c.vertices, c.faces, vertex_colors=c.colors, process=False) for c in self._chunks.values()
         ]

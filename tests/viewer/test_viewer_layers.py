@@ -124,3 +124,28 @@ def test_trajectory_and_camera_layers(server: viser.ViserServer) -> None:
     np.testing.assert_allclose(camera.frustum.position, frames[1].T_world_camera[:3, 3])
     camera.set_points(False)
     assert camera.cloud is None and node(server, "/camera/points") is None
+
+
+def test_dashboard_sends_the_scene_when_the_mesh_changes_and_otherwise_once_a_period() -> None:
+    from h2viz.config import Config
+    from h2viz.viewer import server as server_module
+    from h2viz.viewer.server import Dashboard
+    from h2viz.worker import MappingWorker
+    from tests.viewer.fakes import FakeMapper
+
+    dash = Dashboard(MappingWorker(BoxRoomSource(n=2), FakeMapper(), Config()), Config(), port=0)  # type: ignore[arg-type]
+    try:
+        a, b = chunk((0, 0, 0)), chunk((1, 0, 0))
+        path = lambda n: np.stack([np.eye(4)] * n)  # noqa: E731
+        dash._draw_scene(snapshot(chunks={a.key: a}, trajectory=path(2)), 1)
+        assert dash.scene_updates == 1 and dash.layers.trajectory.n_drawn == 2
+        dash._draw_scene(snapshot(chunks={a.key: a}, trajectory=path(3)), 2)  # same mesh, within the period
+        assert dash.scene_updates == 1 and dash.scene_version == 1 and dash.layers.trajectory.n_drawn == 2
+        dash._draw_scene(snapshot(chunks={a.key: a, b.key: b}, trajectory=path(4)), 3)  # the mesh changed
+        assert dash.scene_updates == 2 and dash.scene_version == 3 and dash.layers.trajectory.n_drawn == 4
+        assert node(dash.server, "/mesh/c_1_0_0") is not None
+        dash._scene_t -= server_module.SCENE_PERIOD_S  # the period has passed: the rest catches up
+        dash._draw_scene(snapshot(chunks={a.key: a, b.key: b}, trajectory=path(5)), 4)
+        assert dash.scene_updates == 3 and dash.layers.trajectory.n_drawn == 5
+    finally:
+        dash.server.stop()
