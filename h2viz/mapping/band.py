@@ -13,8 +13,8 @@ import numba
 import numpy as np
 import torch
 
-from h2viz.mapping.dda import LOCK, lookup
-from h2viz.mapping.jit import njit, threads
+from h2viz.mapping.dda import lookup
+from h2viz.mapping.jit import njit, parallel_region
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.raymarch import walk_table
 
@@ -117,8 +117,7 @@ def band_candidates(
     table = walk_table(octree)
     counts = np.zeros(z.shape[0], np.int64)
     voxel_of = np.empty(jit.shape, np.int64)
-    with LOCK:
-        n_blocks = threads()
+    with parallel_region() as n_blocks:
         _band_kernel(
             o, d, z, jit, n_free, band_m, step_m, octree.voxel_size_m, table.keys, table.ids, n_blocks, counts, voxel_of
         )

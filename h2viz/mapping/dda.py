@@ -4,13 +4,11 @@ A walk is an exact 3-D DDA that jumps over empty space: the leaves sit in an ope
 the octree's packed cell key, value = voxel id), rays are clipped to the map's bounding box, and a grid of
 chessboard distances to the nearest allocated voxel lets a walk skip the cells that cannot hold one. Every
 helper that the kernels inline lives in this module: numba's on-disk cache only notices edits to the file a
-cached function is defined in. Parallel kernels are entered under LOCK (numba's workqueue threading layer must
-not be entered from two threads at once) after `threads()` matched numba's thread count to torch's.
+cached function is defined in. Parallel kernels are entered under `jit.parallel_region()`.
 """
 
 from __future__ import annotations
 
-import threading
 from typing import TYPE_CHECKING, Any
 
 import numba
@@ -22,7 +20,6 @@ from h2viz.mapping.octree import OFFSET
 if TYPE_CHECKING:
     from h2viz.mapping.raymarch import WalkTable
 
-LOCK = threading.Lock()
 _HASH_MULT = -7046029254386353131  # 0x9E3779B97F4A7C15 as int64 (Fibonacci hashing)
 PROBE, COARSE, TRUSTED = 1, 2, 4  # lattice flags
 MODES = {"trust": 0, "distrust": 1, "prior": 2}

@@ -20,7 +20,6 @@ Importing this module raises ImportError when numba is not installed.
 
 from __future__ import annotations
 
-import threading
 import time
 import weakref
 from collections.abc import Sequence
@@ -37,12 +36,11 @@ from torch.autograd.function import once_differentiable
 
 from h2viz.errors import H2vizError
 from h2viz.mapping.encoding import HASH_PRIMES
-from h2viz.mapping.jit import njit, threads
+from h2viz.mapping.jit import njit, parallel_region
 
 P_Y, P_Z = HASH_PRIMES[1], HASH_PRIMES[2]  # the x multiplier is 1
 PREFETCH_AHEAD = 8
 """Points between the one being blended and the one whose table rows are prefetched (forward pass)."""
-_LOCK = threading.Lock()  # a parallel region must not be entered from two threads at once (workqueue layer)
 
 
 @njit
@@ -188,8 +186,8 @@ def forward_features(x64: Tensor, tables: Tensor, cell_sizes_m: Sequence[float])
         return out
     cells = np.asarray(cell_sizes_m, dtype=np.float64)
     tab = tables.detach().contiguous().numpy()
-    with _LOCK:
-        _forward_kernel(x64.numpy(), tab, cells, threads(), out.numpy())
+    with parallel_region() as n_blocks:
+        _forward_kernel(x64.numpy(), tab, cells, n_blocks, out.numpy())
     return out
 
 
@@ -207,8 +205,7 @@ def table_gradient(
         raise H2vizError(f"gradient buffer must be a contiguous {grad_out.dtype} tensor shaped {tuple(table_shape)}")
     grad = torch.empty(table_shape, dtype=grad_out.dtype) if out is None else out  # zero-filled by the kernel
     cells = np.asarray(cell_sizes_m, dtype=np.float64)
-    with _LOCK:
-        threads()
+    with parallel_region():
         _table_grad_kernel(x64.numpy(), grad_out.contiguous().numpy(), cells, level_order(len(cells)), grad.numpy())
     return grad
 

@@ -1,5 +1,5 @@
 """numba compilation with an on-disk cache (compiling in every process when no cache directory is writable),
-and the thread count its parallel kernels use.
+and `parallel_region`, under which every parallel kernel of the package is entered.
 
 numba's cache only notices edits to the file a cached function is defined in: helpers that a kernel inlines
 should live in the kernel's own module.
@@ -7,11 +7,15 @@ should live in the kernel's own module.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import threading
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numba
 import torch
+
+_PARALLEL = threading.Lock()
 
 
 def njit(
@@ -39,8 +43,13 @@ def njit(
     return wrap(fn) if fn is not None else wrap
 
 
-def threads() -> int:
-    """Match numba's thread count to torch's (capped at numba's pool size) and return it."""
-    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-    numba.set_num_threads(n)
-    return n
+@contextlib.contextmanager
+def parallel_region() -> Iterator[int]:
+    """Hold the package's one parallel-kernel lock, with numba's thread count matched to torch's (capped at
+    numba's pool size); yields that count. numba's workqueue threading layer (used when neither OpenMP nor TBB
+    is available) must not be entered from two threads at once, and the mapping and meshing threads both run
+    parallel kernels."""
+    with _PARALLEL:
+        n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+        numba.set_num_threads(n)
+        yield n

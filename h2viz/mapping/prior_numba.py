@@ -8,7 +8,6 @@ corners are shared between points, and the pass is a small part of a step).
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
 import numba
@@ -17,9 +16,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from h2viz.mapping.jit import njit, threads
-
-_LOCK = threading.Lock()  # a parallel region must not be entered from two threads at once (workqueue layer)
+from h2viz.mapping.jit import njit, parallel_region
 
 
 @njit(inline=True)
@@ -118,8 +115,8 @@ class _FusedPrior(torch.autograd.Function):
             corners.contiguous().numpy(),
         )
         out = torch.empty(points.shape[0], dtype=torch.float32)
-        with _LOCK:
-            _forward_kernel(*args, priors.detach().contiguous().numpy(), 1.0 / voxel_size_m, threads(), out.numpy())
+        with parallel_region() as n_blocks:
+            _forward_kernel(*args, priors.detach().contiguous().numpy(), 1.0 / voxel_size_m, n_blocks, out.numpy())
         ctx.args, ctx.inv_vs, ctx.n_priors = args, 1.0 / voxel_size_m, priors.shape[0]
         return out
 

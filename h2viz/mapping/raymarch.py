@@ -26,8 +26,8 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from h2viz.mapping.dda import LOCK, MODES, build_table, hits_kernel, lattice_chunk
-from h2viz.mapping.jit import threads
+from h2viz.mapping.dda import MODES, build_table, hits_kernel, lattice_chunk
+from h2viz.mapping.jit import parallel_region
 from h2viz.mapping.octree import VoxelOctree, decode
 
 
@@ -94,8 +94,7 @@ def voxel_hits(
     near = np.ascontiguousarray(t_near.detach().cpu().numpy(), dtype=np.float64)
     far = np.ascontiguousarray(t_far.detach().cpu().numpy(), dtype=np.float64)
     args = (o, d, near, far, walk_table(octree))
-    with LOCK:
-        n_blocks = threads()
+    with parallel_region() as n_blocks:
         counts = hits_kernel(*args, np.zeros(R, np.int64), False, np.zeros(0, np.int64), np.zeros((0, 2)), n_blocks)
         voxel, t = np.empty(int(counts.sum()), np.int64), np.empty((int(counts.sum()), 2))
         hits_kernel(*args, _offsets(counts), True, voxel, t, n_blocks)

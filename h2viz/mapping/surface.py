@@ -25,9 +25,8 @@ import numpy as np
 import torch
 
 from h2viz.mapping import lattice_search as ls
-from h2viz.mapping.dda import LOCK
 from h2viz.mapping.field import HybridField
-from h2viz.mapping.jit import threads
+from h2viz.mapping.jit import parallel_region
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.raymarch import Lattice, MarchParams, rays64, render_lattice
 from h2viz.mapping.sampling import Samples
@@ -108,8 +107,7 @@ class LatticeSearch:
 
     def points(self, idx: np.ndarray) -> torch.Tensor:
         out = np.empty((idx.shape[0], 3), np.float32)
-        with LOCK:
-            threads()
+        with parallel_region():
             ls.points_kernel(idx, self.lat, self.o, self.d, out)
         return torch.from_numpy(out)
 
@@ -118,8 +116,7 @@ class LatticeSearch:
         its own evaluations could give it something new."""
         A = self._active.shape[0]
         marked, lo, hi = np.empty(A, np.int64), np.empty(A, np.int64), np.empty(A, np.int64)
-        with LOCK:
-            threads()
+        with parallel_region():
             ls.propose_kernel(self.lat, self._active, self._frontier, self._f_lo, self.state, self.rules,
                               self._marks, marked, lo, hi)  # fmt: skip
             f_lo = np.zeros(A + 1, np.int64)
@@ -144,8 +141,7 @@ class LatticeSearch:
         R = self.lat.start.shape[0]
         keep = np.ones(R, np.bool_) if keep_ray is None else keep_ray
         n = np.empty(R, np.int64)
-        with LOCK:
-            threads()
+        with parallel_region():
             ls.count_evaluated(self.lat, keep, self.sdf, n)
             N = int(n.sum())
             out = (np.empty(N, np.float32), np.empty(N, np.int64), np.empty(N, np.int64), np.empty(N, np.float32))
