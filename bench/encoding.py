@@ -37,11 +37,11 @@ from h2viz.mapping.encoding import (  # noqa: E402
     corners_and_weights,
     encode,
     encode_for_compile,
-    fused_kernels,
     gather_blend,
     hash_grid_reference,
     level_cell_sizes,
 )
+from h2viz.mapping.kernels import kernel_module  # noqa: E402
 
 EncodeFn = Callable[[Tensor, Tensor, list[float]], Tensor]
 
@@ -143,7 +143,7 @@ def time_pair(fn: EncodeFn, grid: HashGrid, x: Tensor, upstream: Tensor) -> Timi
 
 def time_kernels_only(grid: HashGrid, x: Tensor, upstream: Tensor, grad_buffer: Tensor) -> Timing:
     """The fused forward and table-gradient kernels alone: no autograd, the gradient buffer is reused."""
-    fused = fused_kernels()
+    fused = kernel_module("hash_numba")
     assert fused is not None
     x64 = x.double()
     w0, c0 = time.perf_counter(), time.process_time()
@@ -158,7 +158,7 @@ def time_kernels_only(grid: HashGrid, x: Tensor, upstream: Tensor, grad_buffer: 
 def variants(compiled: bool, alternatives: bool) -> dict[str, EncodeFn]:
     """The rows of the table: the fused kernels, the torch module path, optionally compile and alternatives."""
     rows: dict[str, EncodeFn] = {}
-    fused = fused_kernels()
+    fused = kernel_module("hash_numba")
     if fused is not None:
         rows["numba fused"] = fused.fused_encode
         rows["numba kernels only"] = fused.fused_encode  # timed by time_kernels_only

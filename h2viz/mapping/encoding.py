@@ -13,10 +13,8 @@ On the CPU, HashGrid runs the fused numba kernels of `h2viz.mapping.hash_numba` 
 
 from __future__ import annotations
 
-import functools
 import itertools
 from collections.abc import Callable
-from types import ModuleType
 from typing import Any
 
 import torch
@@ -24,21 +22,12 @@ from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
 from h2viz.errors import ConfigError, H2vizError
+from h2viz.mapping.kernels import kernel_module
 
 HASH_PRIMES: tuple[int, int, int] = (1, 2654435761, 805459861)
 """Per-axis multipliers of the spatial hash (x, y, z)."""
 KERNEL_CHOICES: tuple[str, ...] = ("auto", "torch")
 """auto: fused numba kernels on the CPU when numba imports, else torch; torch: always the torch path."""
-
-
-@functools.cache
-def fused_kernels() -> ModuleType | None:
-    """The fused CPU kernels module, or None when numba cannot be imported (imported on first use)."""
-    try:
-        from h2viz.mapping import hash_numba
-    except ImportError:
-        return None
-    return hash_numba
 
 
 def level_cell_sizes(n_levels: int = 4, base_cell_m: float = 0.1, scale: float = 2.0) -> list[float]:
@@ -203,7 +192,7 @@ class HashGrid(nn.Module):
         if x.ndim != 2 or x.shape[1] != 3:
             raise H2vizError(f"HashGrid expects points shaped (N,3), got {tuple(x.shape)}; reshape to (-1, 3).")
         x_needs_grad = torch.is_grad_enabled() and x.requires_grad
-        fused = fused_kernels() if self.kernels == "auto" and not x_needs_grad else None
+        fused = kernel_module("hash_numba") if self.kernels == "auto" and not x_needs_grad else None
         if fused is not None and x.device.type == "cpu" and self.tables.device.type == "cpu":
             return fused.fused_encode(x, self.tables, self.cell_sizes_m)
         if torch.is_grad_enabled() and (self.tables.requires_grad or x.requires_grad):

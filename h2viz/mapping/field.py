@@ -6,26 +6,14 @@ octree; the two hash grids and decoders are ordinary modules.
 
 from __future__ import annotations
 
-import functools
-from types import ModuleType
-
 import torch
 from torch import nn
 
 from h2viz.config import MappingConfig
 from h2viz.mapping.encoding import HashGrid
+from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.tiled import tiled
-
-
-@functools.cache
-def prior_kernels() -> ModuleType | None:
-    """The fused CPU prior kernel module, or None when numba cannot be imported."""
-    try:
-        from h2viz.mapping import prior_numba
-    except ImportError:
-        return None
-    return prior_numba
 
 
 def mlp(d_in: int, hidden: int, layers: int, d_out: int) -> nn.Sequential:
@@ -78,7 +66,7 @@ class HybridField(nn.Module):
 
     def prior_sdf(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
         """Trilinear interpolation of the 8 corner priors of each point's voxel: (N,3), (N,) -> (N,)."""
-        fused = prior_kernels() if self.kernels == "auto" else None
+        fused = kernel_module("prior_numba") if self.kernels == "auto" else None
         if fused is not None and points.device.type == "cpu" and not (torch.is_grad_enabled() and points.requires_grad):
             return fused.fused_prior(self.priors, points, voxel, self.voxel_origin, self.corner_ids, self.voxel_size_m)
         return self._trilinear(points, voxel, self.priors[self.corner_ids[voxel]])

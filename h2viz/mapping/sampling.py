@@ -6,12 +6,11 @@ along the camera axis and compares directly with depth images.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
-from types import ModuleType
 
 import torch
 
+from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.raymarch import voxel_hits
 
@@ -98,7 +97,7 @@ def band_samples(
     R, dev = depth.shape[0], depth.device
     n_band = int(round((band_m + truncation_m) / step_m))
     jitter = torch.rand(R, n_band + n_free, generator=generator)  # (R,F+B) reproducible on any device
-    kernels = band_kernels() if fused and dev.type == "cpu" else None
+    kernels = kernel_module("band") if fused and dev.type == "cpu" else None
     if kernels is not None:
         points, t, ray, voxel = kernels.band_candidates(octree, origins, dirs, depth, jitter, n_free, band_m, step_m)
         return Samples(points, t, ray, voxel, R)
@@ -114,13 +113,3 @@ def band_samples(
     keep = (voxel >= 0) & (t.reshape(-1) > 0)
     ray = torch.arange(R, device=dev).repeat_interleave(t.shape[1])
     return Samples(points.reshape(-1, 3)[keep], t.reshape(-1)[keep], ray[keep], voxel[keep], R)
-
-
-@functools.cache
-def band_kernels() -> ModuleType | None:
-    """The numba band-sampling module, or None when numba cannot be imported."""
-    try:
-        from h2viz.mapping import band
-    except ImportError:
-        return None
-    return band

@@ -20,11 +20,13 @@ from h2viz.mapping.encoding import (
     level_cell_sizes,
     spatial_hash,
 )
+from h2viz.mapping.kernels import kernel_module
 
 BASE_CELL_M = 0.1
 SCALE = 2.0
 FINEST_CELL_M = BASE_CELL_M / SCALE**3
-KERNELS = ["torch", pytest.param("auto", marks=pytest.mark.skipif(encoding.fused_kernels() is None, reason="no numba"))]
+NO_NUMBA = kernel_module("hash_numba") is None
+KERNELS = ["torch", pytest.param("auto", marks=pytest.mark.skipif(NO_NUMBA, reason="no numba"))]
 
 
 @pytest.fixture(autouse=True)
