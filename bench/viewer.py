@@ -9,8 +9,8 @@ Speed runs leave the pages alone; the latency run (one browser) ships page 0's w
 process to time mesh arrivals, which itself costs CPU, so its speed is shown apart. Latency of frame i: from
 the end of its mapping to the browser receiving (first) the first pass and (all) every chunk of the first
 mesh job that includes frame i (the chunks its voxels were allocated in or observed, plus chunks whose voxel
-set changed). Mapping speed counts frames over the time from the start
-to the last frame mapped (final meshing and metrics excluded).
+set changed). Mapping speed counts frames over the time from the start to the last frame mapped (final
+meshing and metrics excluded).
 """
 
 from __future__ import annotations
@@ -73,6 +73,12 @@ class Run:
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds while mapping, by thread / process
     messages: dict[str, tuple[int, int]] = field(default_factory=dict)  # browser 0: type -> (count, bytes)
     ws_frames: int = 0  # websocket frames browser 0 received
+
+    @property
+    def label(self) -> str:
+        if self.browsers < 0:
+            return "headless (no dashboard, no meshing)"
+        return f"{self.browsers} browser(s)" + (", recording page 0's websocket" if self.recorded else "")
 
 
 def cpu_seconds() -> dict[str, float]:
@@ -308,9 +314,7 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
     for r in runs:
         rate, median = r.frames / r.mapping_s, statistics.median(r.map_s)
         rel = f"{100 * (rate / base - 1):+.0f} %" if base else "-"
-        label = "headless (no dashboard, no meshing)" if r.browsers < 0 else str(r.browsers)
-        label += " (recording page 0's websocket)" if r.recorded else ""
-        print(f"| {label} | {r.frames} | {r.mapping_s:.1f} | {rate:.3f} | {rel} | {median:.2f} |")
+        print(f"| {r.label} | {r.frames} | {r.mapping_s:.1f} | {rate:.3f} | {rel} | {median:.2f} |")
     for r in runs:
         if not r.recorded:
             continue
@@ -322,7 +326,7 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
             ("kB per mesh update received", [float(b) for b in r.update_bytes], 1e-3),
             ("chunks per mesh update", [float(c) for c in r.update_chunks], 1),
         ]
-        print(f"\n| mesh streaming ({r.browsers} browser(s)) | median / max |\n|---|---:|")
+        print(f"\n| mesh streaming ({r.label}) | median / max |\n|---|---:|")
         for name, values, scale in rows:
             print(f"| {name} | {_median_max(values, scale)} |")
         print(f"| mesh updates received | {len(r.update_bytes)} |")
@@ -332,9 +336,7 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
         top = sorted(r.messages.items(), key=lambda kv: -kv[1][0])[:6]
         print(f"| websocket frames received / s | {r.ws_frames / r.mapping_s:.1f} |")
         print("| messages received (count, kB) | " + ", ".join(f"{k} {c} ({b / 1e3:.0f})" for k, (c, b) in top) + " |")
-    heads = " | ".join(
-        "headless" if r.browsers < 0 else f"{r.browsers} browser(s){', recording' if r.recorded else ''}" for r in runs
-    )
+    heads = " | ".join(r.label for r in runs)
     print(f"\n| CPU while mapping, % of one core | {heads} |")
     print("|---|" + "---:|" * len(runs))
     for name in sorted({k for r in runs for k in r.cpu_s}):
@@ -367,8 +369,7 @@ def main() -> None:
         for n, record in plan:
             run, worker, dashboard, browser = mapping_run(cfg_of(), n, playwright, args.hide_mesh, record)
             runs.append(run)
-            what = ", recording the wire" if record else ""
-            print(f"{n} browser(s){what}: {run.frames} frames mapped in {run.mapping_s:.1f} s", file=sys.stderr)
+            print(f"{run.label}: {run.frames} frames mapped in {run.mapping_s:.1f} s", file=sys.stderr)
             if not renders and not args.no_renders:
                 renders = render_times(worker)
             if browser is not None:

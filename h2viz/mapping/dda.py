@@ -223,7 +223,7 @@ def _most_samples(o: np.ndarray, d: np.ndarray, t1: float, table: WalkTable, ste
     return int(length / step + length * (abs(d[0]) + abs(d[1]) + abs(d[2])) / table.voxel_size) + 4
 
 
-@njit(nogil=True)
+@njit
 def lattice_chunk(o: np.ndarray, d: np.ndarray, t_far: np.ndarray, r0: int, r1: int, table: WalkTable,
                   priors: np.ndarray, corner_ids: np.ndarray, trusted: np.ndarray, step: float, mode: int,
                   probe_below: float, after_m: float) -> Any:  # fmt: skip

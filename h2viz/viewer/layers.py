@@ -78,8 +78,10 @@ class MeshLayer(Layer):
 
     def behind(self, snap: MapSnapshot) -> bool:
         """The shown mesh differs from `snap`'s (only an enabled layer can be behind)."""
+        if not self.enabled:
+            return False
         diff = diff_chunks(self.drawn, snap.chunks)
-        return self.enabled and bool(diff.changed or diff.removed)
+        return bool(diff.changed or diff.removed)
 
     def sync(self, snap: MapSnapshot) -> None:
         diff = diff_chunks(self.drawn, snap.chunks)
