@@ -84,8 +84,16 @@ class HybridField(nn.Module):
         """Signed distance in truncation units (N,) at points (N,3) lying in voxels (N,)."""
         s = self.prior_sdf(points, voxel)
         if self.use_residual:
-            s = s + tiled(self.geo_mlp, self.geo_grid(points))[:, 0]
+            s = s + self.residual(self.geo_grid(points))[:, 0]
         return s
+
+    def residual(self, features: torch.Tensor) -> torch.Tensor:
+        """Geometry decoder on hash features (N, L*F) -> (N,1): the fused CPU kernels for the default one-hidden-
+        layer decoder (h2viz.mapping.decoder_numba), else torch tile by tile."""
+        fused = kernel_module("decoder_numba") if self.kernels == "auto" and features.device.type == "cpu" else None
+        if fused is not None and fused.is_supported(self.geo_mlp) and features.dtype == torch.float32:
+            return fused.fused_decoder(self.geo_mlp, features)
+        return tiled(self.geo_mlp, features)
 
     def color(self, points: torch.Tensor) -> torch.Tensor:
         """RGB in [0,1] (N,3)."""

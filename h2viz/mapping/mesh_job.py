@@ -3,8 +3,6 @@
 The mapping thread builds a MeshJob in a few milliseconds (it copies the hash tables, decoders and corner
 priors, and takes the voxel lists); the job may then run on any thread while mapping goes on training the
 live field. Each lattice point's voxel comes from the mesher, so no voxel lookup is needed.
-
-Compiled code is cached next to this file (numba's cache); without a writable cache it compiles per process.
 """
 
 from __future__ import annotations
@@ -16,39 +14,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from h2viz.mapping.decoder_numba import decode_range, decoder_weights, is_supported
 from h2viz.mapping.field import HybridField
-from h2viz.mapping.jit import njit
 from h2viz.mapping.meshing import ChunkedMesher, ChunkKey
 from h2viz.mapping.prior_numba import blend_range
 from h2viz.types import MeshChunk
 
 FIELD_BATCH = 1 << 16  # points per network call (the activations stay in cache)
-
-
-@njit
-def _residual_kernel(
-    feats: np.ndarray, w1: np.ndarray, b1: np.ndarray, w2: np.ndarray, b2: np.float32, out: np.ndarray
-) -> None:  # pragma: no cover - compiled
-    """out (N,) += w2 . relu(w1 @ f + b1) + b2 for features feats (F,N) (one row per feature), w1 (H,F).
-
-    Hidden unit by hidden unit over all points, so that every inner loop runs elementwise over the points.
-    """
-    n = feats.shape[1]
-    acc = np.full(n, b2, dtype=np.float32)
-    h = np.empty(n, dtype=np.float32)
-    for j in range(w1.shape[0]):
-        for i in range(n):
-            h[i] = b1[j]
-        for f in range(w1.shape[1]):
-            w = w1[j, f]
-            for i in range(n):
-                h[i] += w * feats[f, i]
-        w = w2[j]
-        for i in range(n):
-            if h[i] > 0:
-                acc[i] += w * h[i]
-    for i in range(n):
-        out[i] += acc[i]
 
 
 class FrozenField:
@@ -70,7 +42,7 @@ class FrozenField:
         self._priors = frozen.priors.cpu().numpy().astype(np.float32)  # (C,)
         self._corner_ids = frozen.corner_ids.cpu().numpy()  # (V,8) int64
         self._origin = frozen.voxel_origin.cpu().numpy().astype(np.float32)  # (V,3) metres
-        self._decoder = _one_hidden_layer(frozen.geo_mlp)
+        self._decoder = decoder_weights(frozen.geo_mlp) if is_supported(frozen.geo_mlp) else None
 
     def prior(self, points: np.ndarray, voxel_ids: np.ndarray) -> np.ndarray:
         """Prior SDF in truncation units (N,) float32 at points (N,3) in (or on the faces of) voxels (N,)."""
@@ -91,9 +63,10 @@ class FrozenField:
                 feats = self.field.geo_grid(p)  # (n, L*F)
                 if self._decoder is None:
                     out[i : i + FIELD_BATCH] += self.field.geo_mlp(feats)[:, 0].cpu().numpy()
-                else:
-                    feats_t = np.ascontiguousarray(feats.cpu().numpy().T)  # (L*F, n)
-                    _residual_kernel(feats_t, *self._decoder, out[i : i + FIELD_BATCH])
+                else:  # single-threaded: the cores are mapping's
+                    residual = np.empty((feats.shape[0], 1), np.float32)
+                    decode_range(feats.contiguous().numpy(), *self._decoder, 0, feats.shape[0], residual)
+                    out[i : i + FIELD_BATCH] += residual[:, 0]
         return out * np.float32(self.truncation_m)
 
     @torch.no_grad()
@@ -105,17 +78,6 @@ class FrozenField:
             rgb = (self.field.color(p) * 255.0).round().clamp(0, 255).to(torch.uint8)
             out[i : i + FIELD_BATCH] = rgb.cpu().numpy()
         return out
-
-
-def _one_hidden_layer(mlp: torch.nn.Module) -> tuple[np.ndarray, ...] | None:
-    """(w1 (H,F), b1 (H,), w2 (H,), b2) float32 of a Linear-ReLU-Linear(H,1) decoder, else None."""
-    layers = list(mlp.children())
-    kinds = [type(m) for m in layers]
-    if kinds != [torch.nn.Linear, torch.nn.ReLU, torch.nn.Linear] or layers[2].out_features != 1:
-        return None
-    first, last = layers[0], layers[2]
-    as_np = lambda t: np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)  # noqa: E731
-    return as_np(first.weight), as_np(first.bias), as_np(last.weight[0]), np.float32(last.bias.item())
 
 
 @dataclass(frozen=True)
