@@ -11,7 +11,6 @@ import torch
 import trimesh
 
 from h2viz.config import MappingConfig
-from h2viz.geometry import backproject
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.keyframes import KeyframeSet
 from h2viz.mapping.losses import mapping_losses
@@ -82,8 +81,7 @@ class Mapper:
         start = time.perf_counter()
         timer = StageTimer()
         with timer("allocation"):
-            rays = FrameRays(frame, self.device)
-            points = backproject(frame.depth_m, frame.K, frame.T_world_camera)  # valid depth -> world points
+            rays, points = FrameRays.with_points(frame, self.device)  # valid depth -> rays, world points (P,3)
             alloc = self.octree.allocate(points)  # voxels with > 10 points (+ expanded neighbours)
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
             self._init_priors(frame)  # project new corners into the depth image

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from h2viz.mapping.kernels import kernel_module
 from h2viz.types import RgbdFrame
 
 
@@ -19,31 +20,45 @@ class RayBatch:
 
     @staticmethod
     def cat(batches: list[RayBatch]) -> RayBatch:
-        return RayBatch(
-            *(torch.cat([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "rgb", "depth"))
-        )
+        return RayBatch(*(torch.cat([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "rgb", "depth")))
 
 
 class FrameRays:
     """One frame's colour, depth and pixel rays on the device; sampling touches only valid-depth pixels."""
 
     def __init__(self, frame: RgbdFrame, device: torch.device) -> None:
+        self._build(frame, device)
+
+    @staticmethod
+    def with_points(frame: RgbdFrame, device: torch.device) -> tuple[FrameRays, np.ndarray]:
+        """The frame's rays and its valid pixels' world points (P,3) float32 (for voxel allocation), in one pass."""
+        rays = FrameRays.__new__(FrameRays)
+        return rays, rays._build(frame, device)
+
+    def _build(self, frame: RgbdFrame, device: torch.device) -> np.ndarray:
+        """Fill the fields; returns the world points (P,3). The fused kernel on the CPU, else this torch code."""
         self.index = frame.index
         self.K = frame.K
         self.T_world_camera = frame.T_world_camera
         self.shape = frame.depth_m.shape
-        depth = torch.from_numpy(frame.depth_m).to(device).reshape(-1)  # (H*W,)
-        self.valid = torch.nonzero(depth > 0)[:, 0]  # (P,)
-        self.depth = depth[self.valid]  # (P,)
+        T = torch.from_numpy(frame.T_world_camera).to(device, torch.float32)
+        self.origin = T[:3, 3]  # (3,)
+        fused = kernel_module("frame_numba") if device.type == "cpu" else None
+        if fused is not None:
+            valid, depth, rgb, dirs, points = fused.frame_rays(frame.depth_m, frame.rgb, frame.K, frame.T_world_camera)
+            self.valid, self.depth, self.rgb, self.dirs = (torch.from_numpy(a) for a in (valid, depth, rgb, dirs))
+            return points
+        depth_all = torch.from_numpy(frame.depth_m).to(device, torch.float32).reshape(-1)  # (H*W,)
+        self.valid = torch.nonzero(depth_all > 0)[:, 0]  # (P,)
+        self.depth = depth_all[self.valid]  # (P,)
         self.rgb = torch.from_numpy(frame.rgb.reshape(-1, 3)).to(device)[self.valid]  # (P,3) uint8
-        h, w = self.shape
+        w = self.shape[1]
         v = (self.valid // w).float()
         u = (self.valid % w).float()
-        K = frame.K
+        K = torch.from_numpy(np.asarray(frame.K)).to(torch.float32)
         d_cam = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], 1)
-        T = torch.from_numpy(frame.T_world_camera).to(device, torch.float32)
         self.dirs = d_cam @ T[:3, :3].T  # (P,3)
-        self.origin = T[:3, 3]  # (3,)
+        return (self.origin + self.dirs * self.depth[:, None]).cpu().numpy()
 
     def __len__(self) -> int:
         return int(self.valid.numel())
@@ -53,9 +68,7 @@ class FrameRays:
         P = len(self)
         dev = self.depth.device
         pick = (
-            torch.randint(P, (n,), generator=generator, device="cpu").to(dev)
-            if P
-            else torch.zeros(0, dtype=torch.long)
+            torch.randint(P, (n,), generator=generator, device="cpu").to(dev) if P else torch.zeros(0, dtype=torch.long)
         )
         return RayBatch(
             origins=self.origin.expand(pick.numel(), 3),
@@ -79,9 +92,7 @@ def pixel_rays(
         torch.arange(width, device=device, dtype=torch.float32),
         indexing="ij",
     )
-    d_cam = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1).reshape(
-        -1, 3
-    )
+    d_cam = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1).reshape(-1, 3)
     T = torch.from_numpy(np.asarray(T_world_camera)).to(device, torch.float32)
     dirs = d_cam @ T[:3, :3].T
     return T[:3, 3].expand_as(dirs), dirs
