@@ -12,6 +12,7 @@ import trimesh
 
 from h2viz.config import MappingConfig
 from h2viz.mapping.field import HybridField
+from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.keyframes import KeyframeSet
 from h2viz.mapping.losses import mapping_losses
 from h2viz.mapping.mesh_job import FrozenField, MeshJob
@@ -172,11 +173,7 @@ class Mapper:
             return {"total": torch.zeros(())}
         with timer("forward"):
             sdf = self.field.sdf(samples.points, samples.voxel)  # (S,) truncation units
-            weights = render_weights(samples, sdf, self.cfg.truncation_m, self.cfg.render_temperature)  # (S,)
-            live = live_samples(samples, weights)  # (S',)
-            rgb = self.field.color(samples.points[live])  # (S',3)
-            render = composite(samples, weights, rgb, live)
-            terms = mapping_losses(samples, sdf, render, batch.rgb, batch.depth, self.cfg)
+            terms = self._losses(samples, sdf, batch)
         with timer("backward"):
             self.optim.zero_grad()
             self.net_optim.zero_grad()
@@ -185,6 +182,18 @@ class Mapper:
             self.optim.step()
             self.net_optim.step()
         return {k: v.detach() for k, v in terms.items()}
+
+    def _losses(self, samples: Samples, sdf: torch.Tensor, batch: RayBatch) -> dict[str, torch.Tensor]:
+        """Render the batch (colour evaluated only where the weights matter) and take the four losses: the fused
+        kernels on the CPU (h2viz.mapping.loss_numba), else the torch functions they reproduce."""
+        fused = kernel_module("loss_numba") if self.cfg.kernels == "auto" and self.device.type == "cpu" else None
+        if fused is not None:
+            return fused.mapping_losses(samples, sdf, self.field.color, batch.rgb, batch.depth, self.cfg)
+        weights = render_weights(samples, sdf, self.cfg.truncation_m, self.cfg.render_temperature)  # (S,)
+        live = live_samples(samples, weights)  # (S',)
+        rgb = self.field.color(samples.points[live])  # (S',3)
+        render = composite(samples, weights, rgb, live)
+        return mapping_losses(samples, sdf, render, batch.rgb, batch.depth, self.cfg)
 
     # ------------------------------------------------------------------------------------- outputs
     @torch.no_grad()
