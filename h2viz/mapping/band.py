@@ -13,6 +13,7 @@ import numba
 import numpy as np
 import torch
 
+from h2viz.errors import H2vizError
 from h2viz.mapping.dda import lookup
 from h2viz.mapping.jit import njit, parallel_region
 from h2viz.mapping.octree import VoxelOctree
@@ -52,6 +53,7 @@ def _band_kernel(
     for block in numba.prange(n_blocks):
         for r in range(block * n_rays // n_blocks, (block + 1) * n_rays // n_blocks):
             kept = 0
+            px, py, pz, pv = np.int64(0), np.int64(0), np.int64(0), np.int64(-2)  # last cell looked up
             for k in range(n_cand):
                 t = _candidate_t(depth[r], jitter, r, k, n_free, b32, s32)
                 v = -1
@@ -59,7 +61,9 @@ def _band_kernel(
                     cx = np.int64(np.floor((origins[r, 0] + dirs[r, 0] * t) / vs32))
                     cy = np.int64(np.floor((origins[r, 1] + dirs[r, 1] * t) / vs32))
                     cz = np.int64(np.floor((origins[r, 2] + dirs[r, 2] * t) / vs32))
-                    v = lookup(table_keys, table_ids, cx, cy, cz)
+                    if pv == -2 or cx != px or cy != py or cz != pz:  # 1 cm steps mostly stay in a 10 cm voxel
+                        px, py, pz, pv = cx, cy, cz, lookup(table_keys, table_ids, cx, cy, cz)
+                    v = pv
                 voxel_of[r, k] = v
                 kept += v >= 0
             counts[r] = kept
@@ -110,6 +114,12 @@ def band_candidates(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """(points (S,3), t (S,), ray (S,), voxel (S,)) of the candidates inside allocated voxels, for CPU rays
     origins/dirs (R,3), depth (R,) and jitter (R, n_free + n_band) in [0, 1)."""
+    R = depth.shape[0]
+    if origins.shape != (R, 3) or dirs.shape != (R, 3) or jitter.shape[0] != R or jitter.shape[1] < n_free:
+        raise H2vizError(  # the kernels do not check bounds
+            f"band samples need origins and dirs (R,3), jitter (R, >= n_free) for R = {R} rays, got "
+            f"{tuple(origins.shape)}, {tuple(dirs.shape)}, {tuple(jitter.shape)}"
+        )
     o = np.ascontiguousarray(origins.detach().numpy(), dtype=np.float32)
     d = np.ascontiguousarray(dirs.detach().numpy(), dtype=np.float32)
     z = np.ascontiguousarray(depth.detach().numpy(), dtype=np.float32)
