@@ -151,6 +151,10 @@ class MappingConfig:
     """Width of the geometry decoder's hidden layer."""
     geo_layers: int = 1
     """Hidden layers of the geometry decoder."""
+    residual_bound: float = 2.0
+    """Largest correction of the prior SDF by the hash grid, in truncation units: residual = b * tanh(r / b)
+    (0 = unbounded; priors off = unbounded). The free-space loss pulls the SDF to tr in front of surfaces, and
+    an unbounded residual carries that pull into unobserved parts of voxels as spurious surfaces."""
     color_hidden: int = 64
     """Width of the colour decoder's hidden layers."""
     color_layers: int = 2

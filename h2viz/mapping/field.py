@@ -46,6 +46,7 @@ class HybridField(nn.Module):
         self.voxel_size_m = cfg.voxel_size_m
         self.kernels = cfg.kernels
         self.use_residual = True
+        self.residual_bound = float(cfg.residual_bound) if cfg.priors else 0.0  # tr units, 0 = unbounded
         # Corners without a prior start as free space at the truncation distance: a zero would put a
         # surface on every corner whose projection failed.
         self.unset_prior = 1.0 if cfg.priors else 0.0
@@ -88,12 +89,17 @@ class HybridField(nn.Module):
         return s
 
     def residual(self, features: torch.Tensor) -> torch.Tensor:
-        """Geometry decoder on hash features (N, L*F) -> (N,1): the fused CPU kernels for the default one-hidden-
-        layer decoder (h2viz.mapping.decoder_numba), else torch tile by tile."""
+        """Bounded residual SDF (N,1) from hash features (N, L*F): the geometry decoder through the fused CPU kernels
+        for the default one-hidden-layer decoder (h2viz.mapping.decoder_numba), else torch tile by tile."""
         fused = kernel_module("decoder_numba") if self.kernels == "auto" and features.device.type == "cpu" else None
         if fused is not None and fused.is_supported(self.geo_mlp) and features.dtype == torch.float32:
-            return fused.fused_decoder(self.geo_mlp, features)
-        return tiled(self.geo_mlp, features)
+            return self.bound(fused.fused_decoder(self.geo_mlp, features))
+        return self.bound(tiled(self.geo_mlp, features))
+
+    def bound(self, raw: torch.Tensor) -> torch.Tensor:
+        """The decoder's raw output squashed to at most `residual_bound` either way: b * tanh(raw / b)."""
+        b = self.residual_bound
+        return b * torch.tanh(raw / b) if b > 0 else raw
 
     def color(self, points: torch.Tensor) -> torch.Tensor:
         """RGB in [0,1] (N,3)."""

@@ -62,11 +62,11 @@ class FrozenField:
                 p = torch.from_numpy(np.ascontiguousarray(points[i : i + FIELD_BATCH], np.float32)).to(self.device)
                 feats = self.field.geo_grid(p)  # (n, L*F)
                 if self._decoder is None:
-                    out[i : i + FIELD_BATCH] += self.field.geo_mlp(feats)[:, 0].cpu().numpy()
+                    residual = self.field.geo_mlp(feats).cpu().numpy()
                 else:  # single-threaded: the cores are mapping's
                     residual = np.empty((feats.shape[0], 1), np.float32)
                     decode_range(feats.contiguous().numpy(), *self._decoder, 0, feats.shape[0], residual)
-                    out[i : i + FIELD_BATCH] += residual[:, 0]
+                out[i : i + FIELD_BATCH] += self.field.bound(torch.from_numpy(residual))[:, 0].numpy()
         return out * np.float32(self.truncation_m)
 
     @torch.no_grad()

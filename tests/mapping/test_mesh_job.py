@@ -48,6 +48,8 @@ def probe_points(mapper: Mapper, n: int = 20_000) -> tuple[np.ndarray, np.ndarra
 @pytest.mark.parametrize("geo_layers", [1, 2])  # the compiled decoder, and the networks' own path
 def test_frozen_field_matches_the_live_one(geo_layers: int) -> None:
     mapper, _, _ = sphere_mapper(2, geo_layers=geo_layers)
+    with torch.no_grad():  # a residual large enough that the bound shapes it
+        mapper.field.geo_mlp[-1].bias += 0.8
     frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
     points, ids = probe_points(mapper)
     with torch.no_grad():
@@ -56,6 +58,8 @@ def test_frozen_field_matches_the_live_one(geo_layers: int) -> None:
     np.testing.assert_allclose(frozen.prior(points, ids), live_prior, atol=1e-6)
     np.testing.assert_allclose(frozen.sdf_m(points, ids), live, atol=2e-7)
     assert np.abs(live).max() > 0.01  # a non-trivial field
+    residual = live / mapper.cfg.truncation_m - live_prior
+    assert 0.5 < np.abs(residual).max() < mapper.cfg.residual_bound
     np.testing.assert_array_equal(frozen.color_u8(points), mapper.color_u8(points))
 
 
