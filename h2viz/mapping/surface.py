@@ -77,7 +77,7 @@ def residual_sdf(field: HybridField, points: torch.Tensor) -> torch.Tensor:
     """The hash-grid part of `HybridField.sdf` (N,): sdf = trilinear prior + this."""
     if not field.use_residual:
         return torch.zeros(points.shape[0], device=points.device)
-    return field.bound(decode(field.geo_mlp, field.geo_grid(points)))[:, 0]
+    return field.residual(field.geo_grid(points))[:, 0]
 
 
 def colour(field: HybridField, points: torch.Tensor) -> torch.Tensor:

@@ -61,6 +61,8 @@ class _Tiled(torch.autograd.Function):
 
 def tiled(net: nn.Module, x: Tensor, tile: int = TILE) -> Tensor:
     """net(x) for x (N, D_in), differentiable w.r.t. x and net's parameters, with per-tile recomputation."""
-    if x.shape[0] < MIN_TILES * tile or not torch.is_grad_enabled():
+    if x.shape[0] < MIN_TILES * tile:
         return net(x)
+    if not torch.is_grad_enabled():  # inference: tile by tile as well, nothing to keep
+        return torch.cat([net(x[i : i + tile]) for i in range(0, x.shape[0], tile)])
     return _Tiled.apply(x, net, tile, *net.parameters())
