@@ -89,12 +89,16 @@ class HybridField(nn.Module):
         return s
 
     def residual(self, features: torch.Tensor) -> torch.Tensor:
-        """Bounded residual SDF (N,1) from hash features (N, L*F): the geometry decoder through the fused CPU kernels
-        for the default one-hidden-layer decoder (h2viz.mapping.decoder_numba), else torch tile by tile."""
+        """Bounded residual SDF (N,1) from hash features (N, L*F)."""
+        return self.bound(self._decode(self.geo_mlp, features))
+
+    def _decode(self, net: nn.Sequential, features: torch.Tensor) -> torch.Tensor:
+        """net(features): the fused CPU kernels for one-hidden-layer decoders (h2viz.mapping.decoder_numba; the
+        two-layer colour decoder is faster as torch's matrix products), else torch tile by tile."""
         fused = kernel_module("decoder_numba") if self.kernels == "auto" and features.device.type == "cpu" else None
-        if fused is not None and fused.is_supported(self.geo_mlp) and features.dtype == torch.float32:
-            return self.bound(fused.fused_decoder(self.geo_mlp, features))
-        return self.bound(tiled(self.geo_mlp, features))
+        if fused is not None and fused.is_supported(net) and features.dtype == torch.float32:
+            return fused.fused_decoder(net, features)
+        return tiled(net, features)
 
     def bound(self, raw: torch.Tensor) -> torch.Tensor:
         """The decoder's raw output squashed to at most `residual_bound` either way: b * tanh(raw / b)."""
@@ -103,7 +107,7 @@ class HybridField(nn.Module):
 
     def color(self, points: torch.Tensor) -> torch.Tensor:
         """RGB in [0,1] (N,3)."""
-        return torch.sigmoid(self.color_mlp(self.color_grid(points)))
+        return torch.sigmoid(self._decode(self.color_mlp, self.color_grid(points)))
 
     def forward(self, points: torch.Tensor, voxel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.sdf(points, voxel), self.color(points)

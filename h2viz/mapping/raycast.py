@@ -24,7 +24,7 @@ from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.rays import pixel_rays
 from h2viz.mapping.rendering import composite, live_samples, render_weights, segment_sum
 from h2viz.mapping.sampling import Samples, sample_rays
-from h2viz.mapping.surface import MLP_ROWS, SearchParams, colour, prior_samples, weighted_samples
+from h2viz.mapping.surface import MLP_ROWS, SearchParams, prior_samples, weighted_samples
 
 MODES = ("rgb", "depth", "normal", "prior")
 CHUNK_RAYS = 65536
@@ -123,7 +123,7 @@ def shade(
     hit = segment_sum(weights, samples.ray, samples.n_rays) > HIT_WEIGHT  # (R,)
     if mode == "rgb":
         live = live_samples(samples, weights)  # (S',)
-        return composite(samples, weights, colour(field, samples.points[live]), live).rgb * hit[:, None]
+        return composite(samples, weights, field.color(samples.points[live]), live).rgb * hit[:, None]
     depth = composite(samples, weights, None).depth * hit  # (R,)
     if mode != "normal":
         return depth

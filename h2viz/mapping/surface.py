@@ -62,15 +62,8 @@ class SearchParams:
 
 
 MLP_ROWS = 32768
-"""Decoders run on this many encoded points at a time: their hidden activations then stay in the CPU's cache
-(several times faster than one pass over a million rows)."""
-
-
-def decode(mlp: torch.nn.Module, features: torch.Tensor) -> torch.Tensor:
-    """mlp(features) for features (N,F), MLP_ROWS rows at a time."""
-    if features.shape[0] <= MLP_ROWS:
-        return mlp(features)
-    return torch.cat([mlp(features[i : i + MLP_ROWS]) for i in range(0, features.shape[0], MLP_ROWS)])
+"""Field evaluations that build autograd graphs (normals) run on this many points at a time, so that their
+intermediate tensors stay in the CPU's cache."""
 
 
 def residual_sdf(field: HybridField, points: torch.Tensor) -> torch.Tensor:
@@ -78,11 +71,6 @@ def residual_sdf(field: HybridField, points: torch.Tensor) -> torch.Tensor:
     if not field.use_residual:
         return torch.zeros(points.shape[0], device=points.device)
     return field.residual(field.geo_grid(points))[:, 0]
-
-
-def colour(field: HybridField, points: torch.Tensor) -> torch.Tensor:
-    """`HybridField.color` (N,3) with the decoder run in cache-sized pieces."""
-    return torch.sigmoid(decode(field.color_mlp, field.color_grid(points)))
 
 
 class LatticeSearch:

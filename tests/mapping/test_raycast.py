@@ -148,16 +148,14 @@ def test_priors_off_search_finds_the_surface() -> None:
     assert np.median(np.abs(fast - true_depth(PLANE, PLANE_VIEW))[fast > 0]) < 0.03  # the field is coarse yet
 
 
-def test_cache_sized_decoding_is_the_field(sphere: tuple[Scene, Mapper], monkeypatch: pytest.MonkeyPatch) -> None:
-    """The search's SDF (kernel prior + residual decoded in pieces) and colour are the field's own."""
-    monkeypatch.setattr(surface, "MLP_ROWS", 1000)
+def test_the_searchs_sdf_is_the_field(sphere: tuple[Scene, Mapper]) -> None:
+    """The search's SDF (kernel prior + bounded residual) is the field's own."""
     _, mapper = sphere
     voxel = torch.arange(mapper.octree.n_voxels).repeat_interleave(40)
     points = mapper.field.voxel_origin[voxel] + torch.rand(len(voxel), 3) * mapper.voxel_size_m
     with torch.no_grad():
         sdf = mapper.field.prior_sdf(points, voxel) + surface.residual_sdf(mapper.field, points)
         torch.testing.assert_close(sdf, mapper.field.sdf(points, voxel), rtol=0, atol=1e-5)
-        torch.testing.assert_close(surface.colour(mapper.field, points), mapper.field.color(points), rtol=0, atol=1e-6)
 
 
 def test_central_difference_normals_match_autograd_normals(sphere: tuple[Scene, Mapper]) -> None:
