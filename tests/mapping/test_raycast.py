@@ -158,8 +158,8 @@ def test_the_searchs_sdf_is_the_field(sphere: tuple[Scene, Mapper]) -> None:
         torch.testing.assert_close(sdf, mapper.field.sdf(points, voxel), rtol=0, atol=1e-5)
 
 
-def test_central_difference_normals_match_autograd_normals(sphere: tuple[Scene, Mapper]) -> None:
-    """Rendered normals come from central differences of the fused SDF; autograd through the field is the
+def test_finite_difference_normals_match_autograd_normals(sphere: tuple[Scene, Mapper]) -> None:
+    """Rendered normals come from tetrahedral differences of the fused SDF; autograd through the field is the
     reference (they differ only within a millimetre of hash-cell faces, where the gradient jumps)."""
     _, mapper = sphere
     rng = np.random.default_rng(3)
