@@ -145,8 +145,8 @@ class MappingConfig:
     hash_base_resolution_m: float = 0.1
     """Cell size of the coarsest level (the leaf voxel size by default)."""
     kernels: str = "auto"
-    """auto: fused numba kernels for the hash grids on CPU when numba imports, else pure torch; torch: always
-    the pure-torch path (the reference)."""
+    """auto: the fused numba kernels on the CPU (frame rays, samples, hash grids, prior, geometry decoder, rendering
+    and losses) when numba imports, else pure torch; torch: always the pure-torch path (the reference)."""
     geo_hidden: int = 64
     """Width of the geometry decoder's hidden layer."""
     geo_layers: int = 1
