@@ -377,6 +377,24 @@ def test_meshing_never_stalls_mapping(make_worker: Factory) -> None:
     assert snap.frames_done == 16 and set(snap.chunks) == set(mapper.mesh_chunks())
 
 
+def test_no_mesh_job_is_frozen_while_one_runs(make_worker: Factory) -> None:
+    """Freezing the field for a job costs the mapping thread; it happens only when the mesh thread is free."""
+    mapper = SlowMeshMapper(frames_while_meshing=3)
+    frozen_at: list[int] = []
+    make_job = mapper.mesh_job
+
+    def mesh_job(refresh_s: float = 0.0, whole: bool = False) -> object:
+        frozen_at.append(mapper._version)
+        return make_job(refresh_s, whole)
+
+    mapper.mesh_job = mesh_job  # type: ignore[method-assign]
+    worker = make_worker(BoxRoomSource(n=16), mapper, mesh_update_hz=50.0)
+    assert worker.wait_finished(30)
+    while_mapping = [v for v in frozen_at if v < 16]
+    assert 2 <= len(while_mapping) <= 16 // 3 + 2  # one job per ~3 frames, not one per frame
+    assert set(worker.slot.get()[1].chunks) == set(mapper.mesh_chunks())
+
+
 def test_each_frame_reaches_the_snapshots_through_the_mesh_thread(make_worker: Factory) -> None:
     mapper = FakeMapper(delay_s=0.1)
     worker = make_worker(BoxRoomSource(n=8), mapper, mesh_update_hz=20.0)

@@ -178,8 +178,8 @@ class MappingWorker(CommandServing):
         every = self.settings.metrics_every
         if self._gt is not None and every > 0 and len(self._stats) % every == 0:
             self._refresh_metrics()
-        if self._mesh_due():
-            self._submit_mesh(REFRESH_S)
+        if self._mesh_due() and (self._mesh_dirty or not self.meshing.busy):
+            self._submit_mesh(REFRESH_S)  # not while a job runs: freezing the field costs ~15 ms a frame
         self._resolve_steps(stats)
         self._publish()
 
