@@ -26,20 +26,26 @@ BLOCKS_PER_THREAD = 4
 """Sample blocks per thread: enough to balance the load, few enough that the per-block gradients stay small."""
 
 
+@njit(inline=True)
+def _pre_activation(x: np.ndarray, p: int, w1t: np.ndarray, b1: np.ndarray, h: np.ndarray) -> None:
+    """h (H,) <- W1 x[p] + b1, the hidden layer before its ReLU."""
+    for j in range(h.shape[0]):
+        h[j] = b1[j]
+    for k in range(x.shape[1]):
+        xk = x[p, k]
+        for j in range(h.shape[0]):
+            h[j] += w1t[k, j] * xk
+
+
 @njit(fastmath=True)
 def decode_range(
     x: np.ndarray, w1t: np.ndarray, b1: np.ndarray, w2: np.ndarray, b2: np.ndarray, start: int, stop: int, y: np.ndarray
 ) -> None:
     """y[start:stop] (.,O) <- decoder(x[start:stop] (.,D)), serially; w1t (D,H) is W1 transposed, w2 (O,H)."""
-    d_in, hidden, d_out = x.shape[1], w1t.shape[1], w2.shape[0]
+    hidden, d_out = w1t.shape[1], w2.shape[0]
     h = np.empty(hidden, dtype=x.dtype)
     for p in range(start, stop):
-        for j in range(hidden):
-            h[j] = b1[j]
-        for k in range(d_in):
-            xk = x[p, k]
-            for j in range(hidden):
-                h[j] += w1t[k, j] * xk
+        _pre_activation(x, p, w1t, b1, h)
         for o in range(d_out):
             acc = b2[o]
             for j in range(hidden):
@@ -84,12 +90,7 @@ def _backward_kernel(
         h = np.empty(hidden, dtype=x.dtype)
         dh = np.empty(hidden, dtype=x.dtype)
         for p in range(block * n // n_blocks, (block + 1) * n // n_blocks):
-            for j in range(hidden):
-                h[j] = b1[j]
-            for k in range(d_in):
-                xk = x[p, k]
-                for j in range(hidden):
-                    h[j] += w1t[k, j] * xk
+            _pre_activation(x, p, w1t, b1, h)  # recomputed: cheaper than storing (N,H)
             for j in range(hidden):
                 dh[j] = 0.0
             for o in range(d_out):

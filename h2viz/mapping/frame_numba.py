@@ -46,7 +46,7 @@ def frame_rays(
 ) -> tuple[np.ndarray, ...]:
     """valid pixel ids (P,) int64, depth (P,) float32, rgb (P,3) uint8, dirs (P,3) and world points (P,3) float32
     of the pixels with depth > 0 of a frame (depth (H,W) metres, rgb (H,W,3) uint8)."""
-    h, w = depth_m.shape
+    w = depth_m.shape[1]
     depth = np.ascontiguousarray(depth_m, dtype=np.float32).reshape(-1)
     valid = np.flatnonzero(depth > 0)
     n = valid.size
