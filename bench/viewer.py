@@ -4,6 +4,7 @@ per resolution. Browsers are Debian's headless chromium driven by Playwright, on
 
     .venv/bin/python bench/viewer.py                      # synthetic scene, configs/fast.yaml, 20 frames
     .venv/bin/python bench/viewer.py --frames 40 mapping.max_iters=10
+    .venv/bin/python bench/viewer.py --config '' mapping.threads=2     # the default configuration
 
 Speed runs leave the pages alone; the latency run (one browser) ships page 0's websocket frames to this
 process to time mesh arrivals, which itself costs CPU, so its speed is shown apart. Latency of frame i: from
@@ -49,6 +50,14 @@ CHROMIUM_ARGS = [
     "--disable-sync",
 ]
 RESOLUTIONS = [(80, 60), (160, 120), (320, 240), (640, 480)]
+FRAME_COUNTER = """
+window.__h2vizFrames = 0;
+for (const proto of [WebGL2RenderingContext.prototype, WebGLRenderingContext.prototype]) {
+  const clear = proto.clear;
+  proto.clear = function (...args) { window.__h2vizFrames++; return clear.apply(this, args); };
+}
+"""
+"""Counts the scene frames a page draws (three.js clears the canvas once per frame of the viser scene)."""
 Key = tuple[int, int, int]
 
 
@@ -73,6 +82,7 @@ class Run:
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds while mapping, by thread / process
     messages: dict[str, tuple[int, int]] = field(default_factory=dict)  # browser 0: type -> (count, bytes)
     ws_frames: int = 0  # websocket frames browser 0 received
+    gl_frames: int = 0  # scene frames page 0 drew while mapping
 
     @property
     def label(self) -> str:
@@ -224,6 +234,8 @@ def mapping_run(
     if n_browsers:
         browser = playwright.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
         pages = [browser.new_page(viewport={"width": 800, "height": 600}) for _ in range(n_browsers)]
+        for page in pages:
+            page.add_init_script(FRAME_COUNTER)
         if record:
             pages[0].on("websocket", lambda ws: ws.on("framereceived", wire.on_frame))
     dashboard.start()
@@ -232,13 +244,15 @@ def mapping_run(
     deadline = time.time() + 120
     while dashboard.client_count() < n_browsers and time.time() < deadline:
         pages[0].wait_for_timeout(200)
-    t0, cpu0 = time.time(), cpu_seconds()
+    drawn = lambda: int(pages[0].evaluate("window.__h2vizFrames || 0")) if pages else 0  # noqa: E731
+    t0, cpu0, frames0 = time.time(), cpu_seconds(), drawn()
     worker.start()
     while len(worker.mapped_at) < len(source.frames) and not worker.wait_finished(0.05):
         if record:
             pages[0].wait_for_timeout(100)  # Playwright delivers the frame events while it waits
     cpu1 = cpu_seconds()
     run.cpu_s = {k: v - cpu0.get(k, 0.0) for k, v in cpu1.items()}
+    run.gl_frames = drawn() - frames0
     while not worker.wait_finished(0.05):
         if pages:
             pages[0].wait_for_timeout(100)
@@ -342,6 +356,16 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
     for name in sorted({k for r in runs for k in r.cpu_s}):
         cells = " | ".join(f"{100 * r.cpu_s.get(name, 0.0) / r.mapping_s:.0f}" for r in runs)
         print(f"| {name} | {cells} |")
+    shown = [r for r in runs if r.browsers > 0]
+    if shown:
+        print(f"\n| page 0 (800x600, software WebGL) | {' | '.join(r.label for r in shown)} |")
+        print("|---|" + "---:|" * len(shown))
+        print("| scene frames drawn / s | " + " | ".join(f"{r.gl_frames / r.mapping_s:.1f}" for r in shown) + " |")
+        per_frame = []
+        for r in shown:  # every browser's CPU over every page's frames (pages draw alike)
+            browser_s = sum(v for k, v in r.cpu_s.items() if k.startswith("browser:"))
+            per_frame.append(f"{1000 * browser_s / max(1, r.gl_frames * r.browsers):.0f}")
+        print("| browser CPU ms / frame | " + " | ".join(per_frame) + " |")
     print("\n| novel view | rgb render ms | background (rgb + half-res depth) ms |\n|---|---:|---:|")
     for res, rgb, both in renders:
         print(f"| {res} | {1000 * rgb:.0f} | {1000 * both:.0f} |")
@@ -355,9 +379,12 @@ def main() -> None:
     parser.add_argument("--no-headless", action="store_true", help="skip the run without dashboard")
     parser.add_argument("--no-latency", action="store_true", help="skip the run that times mesh arrivals")
     parser.add_argument("--hide-mesh", action="store_true", help="mesh layer off (what the rest of the page costs)")
+    parser.add_argument(
+        "--config", default=str(ROOT / "configs" / "fast.yaml"), help="config file over the defaults ('' = none)"
+    )
     parser.add_argument("overrides", nargs="*", help="config overrides, e.g. mapping.max_iters=5")
     args = parser.parse_args()
-    files = [source_config_file("synthetic"), ROOT / "configs" / "fast.yaml"]
+    files = [source_config_file("synthetic"), Path(args.config) if args.config else None]
     base = ["source.format=synthetic", "source.stride=4", f"source.max_frames={args.frames}", "viewer.port=0"]
     cfg_of = lambda: load_config([f for f in files if f], [*base, *args.overrides])  # noqa: E731
     from playwright.sync_api import sync_playwright

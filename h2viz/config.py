@@ -166,7 +166,11 @@ class MappingConfig:
     step_m: float = 0.01
     """Distance between samples along a ray inside allocated voxels."""
     band_m: float = 0.15
-    """Training samples every step_m from this far in front of the measured depth to tr behind it..."""
+    """Training samples from this far in front of the measured depth to tr behind it: every step_m within tr of
+    the depth..."""
+    band_front_step_m: float = 0.05
+    """...and every this far (rounded to tile the span) from band_m to tr in front of it, where only the
+    free-space loss acts..."""
     free_samples: int = 24
     """...plus this many stratified free-space candidates per ray, kept where they fall in allocated voxels
     (-1 = instead sample every step_m of every allocated voxel the ray crosses, as the paper does)."""

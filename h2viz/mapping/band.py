@@ -1,7 +1,8 @@
 """Numba kernel of the training samples (`h2viz.mapping.sampling.band_samples` is its torch reference).
 
-Per ray: `n_free` stratified free-space candidates between the camera and the band, then every `step` from
-`band` in front of the measured depth to tr behind it (each jittered within its stratum), in float32 as the
+Per ray: `n_free` stratified free-space candidates between the camera and the band, `n_front` strata of the
+band's free-space part (from `band` to tr in front of the measured depth), then every `step` from tr in front
+of it to tr behind it (each candidate jittered within its stratum), in float32 as the
 reference computes them; each candidate is looked up in the octree's leaf hash table and kept when it falls in
 an allocated voxel. Two parallel passes over blocks of rays: count (and remember each candidate's voxel), then
 write the kept samples at each ray's offset, ray-major and in increasing t.
@@ -18,17 +19,22 @@ from h2viz.mapping.dda import lookup
 from h2viz.mapping.jit import njit, parallel_region
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.raymarch import walk_table
+from h2viz.mapping.sampling import BandLayout
 
 
 @njit(inline=True)
 def _candidate_t(
-    depth: np.float32, jitter: np.ndarray, r: int, k: int, n_free: int, band: np.float32, step: np.float32
+    depth: np.float32, jitter: np.ndarray, r: int, k: int, n_free: int, n_front: int, lay: np.ndarray
 ) -> np.float32:
-    """t of candidate k of ray r: free-space strata first, then the band."""
+    """t of candidate k of ray r: free-space strata, the band's front strata, then the truncation band.
+    lay = (band, front step, tr, step) in float32."""
     if k < n_free:
-        free_end = max(depth - band, np.float32(0.0))
+        free_end = max(depth - lay[0], np.float32(0.0))
         return (np.float32(k) + jitter[r, k]) / np.float32(n_free) * free_end
-    return (depth - band) + (np.float32(k - n_free) + jitter[r, k]) * step
+    k -= n_free
+    if k < n_front:
+        return (depth - lay[0]) + (np.float32(k) + jitter[r, k + n_free]) * lay[1]
+    return (depth - lay[2]) + (np.float32(k - n_front) + jitter[r, k + n_free]) * lay[3]
 
 
 @njit(parallel=True)
@@ -38,8 +44,8 @@ def _band_kernel(
     depth: np.ndarray,
     jitter: np.ndarray,
     n_free: int,
-    band: float,
-    step: float,
+    n_front: int,
+    lay: np.ndarray,
     vs: float,
     table_keys: np.ndarray,
     table_ids: np.ndarray,
@@ -49,13 +55,13 @@ def _band_kernel(
 ) -> None:
     """voxel_of (R,K) <- voxel id of every candidate (-1 outside the map or behind the camera); counts (R,)."""
     n_rays, n_cand = jitter.shape
-    b32, s32, vs32 = np.float32(band), np.float32(step), np.float32(vs)
+    vs32 = np.float32(vs)
     for block in numba.prange(n_blocks):
         for r in range(block * n_rays // n_blocks, (block + 1) * n_rays // n_blocks):
             kept = 0
             px, py, pz, pv = np.int64(0), np.int64(0), np.int64(0), np.int64(-2)  # last cell looked up
             for k in range(n_cand):
-                t = _candidate_t(depth[r], jitter, r, k, n_free, b32, s32)
+                t = _candidate_t(depth[r], jitter, r, k, n_free, n_front, lay)
                 v = -1
                 if t > 0.0:
                     cx = np.int64(np.floor((origins[r, 0] + dirs[r, 0] * t) / vs32))
@@ -76,8 +82,8 @@ def _band_fill(
     depth: np.ndarray,
     jitter: np.ndarray,
     n_free: int,
-    band: float,
-    step: float,
+    n_front: int,
+    lay: np.ndarray,
     voxel_of: np.ndarray,
     offsets: np.ndarray,
     n_blocks: int,
@@ -88,14 +94,13 @@ def _band_fill(
 ) -> None:
     """Write the kept candidates of every ray at offsets (R,) into points (S,3), t, ray, voxel (S,)."""
     n_rays, n_cand = jitter.shape
-    b32, s32 = np.float32(band), np.float32(step)
     for block in numba.prange(n_blocks):
         for r in range(block * n_rays // n_blocks, (block + 1) * n_rays // n_blocks):
             s = offsets[r]
             for k in range(n_cand):
                 if voxel_of[r, k] < 0:
                     continue
-                t = _candidate_t(depth[r], jitter, r, k, n_free, b32, s32)
+                t = _candidate_t(depth[r], jitter, r, k, n_free, n_front, lay)
                 for a in range(3):
                     points[s, a] = origins[r, a] + dirs[r, a] * t
                 t_out[s], ray[s], voxel[s] = t, r, voxel_of[r, k]
@@ -108,18 +113,18 @@ def band_candidates(
     dirs: torch.Tensor,
     depth: torch.Tensor,
     jitter: torch.Tensor,
-    n_free: int,
-    band_m: float,
-    step_m: float,
+    layout: BandLayout,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """(points (S,3), t (S,), ray (S,), voxel (S,)) of the candidates inside allocated voxels, for CPU rays
-    origins/dirs (R,3), depth (R,) and jitter (R, n_free + n_band) in [0, 1)."""
+    origins/dirs (R,3), depth (R,) and jitter (R, layout.n_candidates) in [0, 1)."""
     R = depth.shape[0]
-    if origins.shape != (R, 3) or dirs.shape != (R, 3) or jitter.shape[0] != R or jitter.shape[1] < n_free:
+    if origins.shape != (R, 3) or dirs.shape != (R, 3) or jitter.shape != (R, layout.n_candidates):
         raise H2vizError(  # the kernels do not check bounds
-            f"band samples need origins and dirs (R,3), jitter (R, >= n_free) for R = {R} rays, got "
+            f"band samples need origins and dirs (R,3), jitter (R, {layout.n_candidates}) for R = {R} rays, got "
             f"{tuple(origins.shape)}, {tuple(dirs.shape)}, {tuple(jitter.shape)}"
         )
+    n_free, n_front = layout.n_free, layout.n_front
+    lay = np.array([layout.band_m, layout.front_step_m, layout.truncation_m, layout.step_m], np.float32)
     o = np.ascontiguousarray(origins.detach().numpy(), dtype=np.float32)
     d = np.ascontiguousarray(dirs.detach().numpy(), dtype=np.float32)
     z = np.ascontiguousarray(depth.detach().numpy(), dtype=np.float32)
@@ -129,11 +134,11 @@ def band_candidates(
     voxel_of = np.empty(jit.shape, np.int64)
     with parallel_region() as n_blocks:
         _band_kernel(
-            o, d, z, jit, n_free, band_m, step_m, octree.voxel_size_m, table.keys, table.ids, n_blocks, counts, voxel_of
+            o, d, z, jit, n_free, n_front, lay, octree.voxel_size_m, table.keys, table.ids, n_blocks, counts, voxel_of
         )
         n = int(counts.sum())
         points, t = np.empty((n, 3), np.float32), np.empty(n, np.float32)
         ray, voxel = np.empty(n, np.int64), np.empty(n, np.int64)
         offsets = np.cumsum(counts) - counts
-        _band_fill(o, d, z, jit, n_free, band_m, step_m, voxel_of, offsets, n_blocks, points, t, ray, voxel)
+        _band_fill(o, d, z, jit, n_free, n_front, lay, voxel_of, offsets, n_blocks, points, t, ray, voxel)
     return tuple(torch.from_numpy(a) for a in (points, t, ray, voxel))  # type: ignore[return-value]

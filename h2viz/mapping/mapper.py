@@ -23,7 +23,7 @@ from h2viz.mapping.priors import PriorInitializer
 from h2viz.mapping.raycast import RenderParams, locate, render_image
 from h2viz.mapping.rays import FrameRays, RayBatch
 from h2viz.mapping.rendering import composite, live_samples, render_weights
-from h2viz.mapping.sampling import Samples, band_samples, sample_rays
+from h2viz.mapping.sampling import BandLayout, Samples, band_samples, sample_rays
 from h2viz.timing import StageTimer
 from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
 
@@ -153,17 +153,9 @@ class Mapper:
         if c.free_samples < 0:  # every 1 cm of every allocated voxel the ray crosses
             far = batch.depth + c.truncation_m
             return sample_rays(self.octree, batch.origins, batch.dirs, far, c.step_m, True), batch
+        layout = BandLayout(c.band_m, c.truncation_m, c.step_m, c.band_front_step_m, c.free_samples)
         samples = band_samples(
-            self.octree,
-            batch.origins,
-            batch.dirs,
-            batch.depth,
-            c.band_m,
-            c.truncation_m,
-            c.step_m,
-            c.free_samples,
-            self.rng,
-            fused=c.kernels == "auto",
+            self.octree, batch.origins, batch.dirs, batch.depth, layout, self.rng, fused=c.kernels == "auto"
         )
         return samples, batch
 

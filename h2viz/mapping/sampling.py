@@ -78,36 +78,68 @@ def sample_rays(
     return samples
 
 
+@dataclass(frozen=True)
+class BandLayout:
+    """Where a training ray's candidate samples lie, relative to its measured depth d: `n_free` strata from
+    the camera to d - band_m; strata of `front_step_m` (rounded to tile the span) from d - band_m to d - tr,
+    where only the free-space loss acts; every `step_m` from d - tr to d + tr, where the SDF loss and the
+    render weights live."""
+
+    band_m: float
+    truncation_m: float
+    step_m: float
+    front_step_m: float
+    n_free: int
+
+    @property
+    def n_front(self) -> int:
+        return max(0, int(round((self.band_m - self.truncation_m) / self.front_step_m)))
+
+    @property
+    def n_truncation(self) -> int:
+        return max(1, int(round(2.0 * self.truncation_m / self.step_m)))
+
+    @property
+    def n_candidates(self) -> int:
+        return self.n_free + self.n_front + self.n_truncation
+
+    def with_exact_steps(self) -> BandLayout:
+        """The front step that tiles band_m - tr exactly in n_front strata."""
+        span = self.band_m - self.truncation_m
+        return BandLayout(self.band_m, self.truncation_m, self.step_m, span / max(self.n_front, 1), self.n_free)
+
+
 def band_samples(
     octree: VoxelOctree,
     origins: torch.Tensor,
     dirs: torch.Tensor,
     depth: torch.Tensor,
-    band_m: float,
-    truncation_m: float,
-    step_m: float,
-    n_free: int,
+    layout: BandLayout,
     generator: torch.Generator | None = None,
     fused: bool = True,
 ) -> Samples:
-    """Training samples where the losses act, without traversing the whole ray: every `step_m` from
-    `band_m` in front of the measured depth to tr behind it, plus `n_free` stratified free-space candidates
-    between the camera and the band; only candidates inside allocated voxels are kept. depth (R,) > 0.
-    `fused` runs the numba kernel (h2viz.mapping.band) for CPU rays; the torch code below is its reference."""
+    """Training samples where the losses act, without traversing the whole ray (see BandLayout); only
+    candidates inside allocated voxels are kept. depth (R,) > 0. `fused` runs the numba kernel
+    (h2viz.mapping.band) for CPU rays; the torch code below is its reference."""
     R, dev = depth.shape[0], depth.device
-    n_band = int(round((band_m + truncation_m) / step_m))
-    jitter = torch.rand(R, n_band + n_free, generator=generator)  # (R,F+B) reproducible on any device
+    lay = layout.with_exact_steps()
+    n_free, n_front, n_trunc = lay.n_free, lay.n_front, lay.n_truncation
+    jitter = torch.rand(R, lay.n_candidates, generator=generator)  # (R,F+B) reproducible on any device
     kernels = kernel_module("band") if fused and dev.type == "cpu" else None
     if kernels is not None:
-        points, t, ray, voxel = kernels.band_candidates(octree, origins, dirs, depth, jitter, n_free, band_m, step_m)
+        points, t, ray, voxel = kernels.band_candidates(octree, origins, dirs, depth, jitter, lay)
         return Samples(points, t, ray, voxel, R)
     jitter = jitter.to(dev)
-    k = torch.arange(n_band, device=dev, dtype=depth.dtype)
-    t_band = (depth - band_m)[:, None] + (k + jitter[:, n_free:]) * step_m  # (R,B)
-    free_end = (depth - band_m).clamp(min=0.0)
+    f32 = lambda v: torch.tensor(v, dtype=torch.float32).to(depth.dtype)  # noqa: E731  (the kernel's float32)
+    band, front, tr, step = f32(lay.band_m), f32(lay.front_step_m), f32(lay.truncation_m), f32(lay.step_m)
+    k = torch.arange(n_front, device=dev, dtype=depth.dtype)
+    t_front = (depth - band)[:, None] + (k + jitter[:, n_free : n_free + n_front]) * front  # (R,N)
+    k = torch.arange(n_trunc, device=dev, dtype=depth.dtype)
+    t_trunc = (depth - tr)[:, None] + (k + jitter[:, n_free + n_front :]) * step  # (R,B)
+    free_end = (depth - band).clamp(min=0.0)
     j = torch.arange(n_free, device=dev, dtype=depth.dtype)
     t_free = (j + jitter[:, :n_free]) / max(n_free, 1) * free_end[:, None]  # (R,F)
-    t = torch.cat([t_free, t_band], dim=1)  # (R,F+B) increasing along each row
+    t = torch.cat([t_free, t_front, t_trunc], dim=1)  # (R,F+N+B) increasing along each row
     points = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # (R,F+B,3)
     voxel = octree.lookup_points(points.reshape(-1, 3))  # (R*(F+B),)
     keep = (voxel >= 0) & (t.reshape(-1) > 0)

@@ -10,7 +10,7 @@ import torch
 from h2viz.mapping import raymarch
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.rendering import composite, render_weights
-from h2viz.mapping.sampling import band_samples, sample_rays, traverse
+from h2viz.mapping.sampling import BandLayout, band_samples, sample_rays, traverse
 
 
 def random_tree(seed: int = 0) -> VoxelOctree:
@@ -115,7 +115,8 @@ def test_traversal_jumps_empty_space_without_missing_voxels(monkeypatch: pytest.
     assert bool((hits.t_in >= torch.tensor(t_near).float()[hits.ray] - 1e-6).all())
 
 
-def test_band_samples_kernel_matches_the_torch_reference() -> None:
+@pytest.mark.parametrize("front_step_m", [0.01, 0.03])
+def test_band_samples_kernel_matches_the_torch_reference(front_step_m: float) -> None:
     """The numba band sampler keeps exactly the candidates the torch code keeps, at the same positions."""
     tree = random_tree(4)
     rng = np.random.default_rng(5)
@@ -123,7 +124,8 @@ def test_band_samples_kernel_matches_the_torch_reference() -> None:
     d = torch.tensor(rng.normal(size=(300, 3))).float()
     d = d / (d[:, 2:3].abs() + 0.2)
     depth = torch.tensor(rng.uniform(0.05, 1.2, size=300)).float()
-    args = (tree, o, d, depth, 0.15, 0.05, 0.01, 12)
+    layout = BandLayout(0.15, 0.05, 0.01, front_step_m, 12)
+    args = (tree, o, d, depth, layout)
     fast = band_samples(*args, generator=torch.Generator().manual_seed(7), fused=True)
     ref = band_samples(*args, generator=torch.Generator().manual_seed(7), fused=False)
     assert fast.t.numel() > 300
@@ -133,6 +135,10 @@ def test_band_samples_kernel_matches_the_torch_reference() -> None:
     assert bool((fast.t > 0).all())
     same = fast.ray[1:] == fast.ray[:-1]
     assert bool((fast.t[1:][same] > fast.t[:-1][same]).all())
-    n_band = 20
+    n_band = 10 + round(0.10 / front_step_m)
     per_ray = torch.bincount(fast.ray, minlength=300)
     assert int(per_ray.max()) <= n_band + 12
+    rel = depth[fast.ray] - fast.t  # in front of the measured depth > 0
+    front, trunc = (rel > 0.05 + 1e-6) & (rel <= 0.15 + 1e-6), rel.abs() <= 0.05 + 1e-6
+    assert int(torch.bincount(fast.ray[front], minlength=300).max()) <= round(0.10 / front_step_m)
+    assert int(torch.bincount(fast.ray[trunc], minlength=300).max()) <= 10  # 1 cm steps within tr
