@@ -20,6 +20,7 @@ import argparse
 import dataclasses
 import os
 import re
+import shlex
 import statistics
 import sys
 import threading
@@ -148,11 +149,14 @@ class Wire:
     """Mesh sends of the dashboard and GLB arrivals in page 0."""
 
     sends: list[tuple[float, dict[Key, int]]] = field(default_factory=list)  # (time, {chunk: version})
+    shown: list[tuple[float, int, frozenset[Key]]] = field(default_factory=list)  # (time, newest version, chunks)
     arrivals: list[tuple[float, str, int]] = field(default_factory=list)  # (time, node name, bytes)
     kinds: dict[str, list[int]] = field(default_factory=dict)  # message type -> [count, bytes]
     frames: int = 0  # websocket frames received
 
     def on_sent(self, snap: Any, keys: list[Key], nbytes: int) -> None:
+        newest = max((c.version for c in snap.chunks.values()), default=-1)
+        self.shown.append((time.time(), newest, frozenset(snap.chunks)))
         if keys:
             self.sends.append((time.time(), {k: snap.chunks[k].version for k in keys if k in snap.chunks}))
 
@@ -167,8 +171,12 @@ class Wire:
             self.arrivals.extend((now, m.name, m.nbytes) for m in messages if m.type == "GlbMessage" and m.name)
 
     def arrival(self, key: Key, version: int) -> tuple[float, int] | None:
-        """(time, bytes) the browser first received chunk `key` at `version` (or a newer one)."""
+        """(time, bytes) the browser first received chunk `key` at `version` (or a newer one); for a chunk
+        meshed empty (the mesher drops it) there is nothing to receive: the time the scene was updated without it."""
         sent = [t for t, chunks in self.sends if chunks.get(key, -1) >= version]
+        gone = next((t for t, newest, keys in self.shown if newest >= version and key not in keys), None)
+        if gone is not None and (not sent or gone < sent[0]):
+            return gone, 0  # meshed empty: the scene dropped the chunk (or never had it), nothing to receive
         if not sent:
             return None
         name = node_name(key)
@@ -403,7 +411,7 @@ def main() -> None:
                 browser.close()
             dashboard.stop()
             worker.stop()
-    print_tables(runs, renders, " ".join([".venv/bin/python bench/viewer.py", *sys.argv[1:]]))
+    print_tables(runs, renders, shlex.join([".venv/bin/python", "bench/viewer.py", *sys.argv[1:]]))
 
 
 if __name__ == "__main__":
