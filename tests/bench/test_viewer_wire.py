@@ -1,0 +1,46 @@
+"""bench/viewer.py's mesh-arrival bookkeeping: when a chunk of a given version counts as in the browser."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from bench.viewer import Wire, node_name
+from h2viz.types import MeshChunk
+
+
+def chunk(key: tuple[int, int, int], version: int) -> MeshChunk:
+    tri = np.zeros((1, 3), np.int32)
+    return MeshChunk(key, np.zeros((3, 3), np.float32), tri, np.zeros((3, 3), np.uint8), version)
+
+
+def snap(*chunks: MeshChunk) -> SimpleNamespace:
+    return SimpleNamespace(chunks={c.key: c for c in chunks})
+
+
+def test_a_chunk_arrives_with_its_first_glb_after_the_send() -> None:
+    wire, a, b = Wire(), (0, 0, 0), (1, 0, -1)
+    wire.on_sent(snap(chunk(a, 1), chunk(b, 1)), [a, b], 0)
+    t_sent = wire.sends[-1][0]
+    wire.arrivals += [
+        (t_sent - 5.0, node_name(a), 10),
+        (t_sent + 0.2, node_name(a), 11),
+        (t_sent + 0.3, node_name(b), 12),
+    ]
+    assert wire.arrival(a, 1) == (t_sent + 0.2, 11)  # not the stale GLB from before the send
+    assert wire.arrival(b, 1) == (t_sent + 0.3, 12)
+    assert wire.arrival(a, 2) is None  # version 2 was never sent
+
+
+def test_a_chunk_meshed_empty_counts_as_delivered_when_the_scene_drops_it() -> None:
+    """The mesher drops a chunk whose surface vanished; the browser then has nothing to receive for it, and its
+    next non-empty version (much later) must not count as this version's arrival."""
+    wire, a, b = Wire(), (0, 0, 0), (2, 2, 2)
+    wire.on_sent(snap(chunk(a, 1), chunk(b, 1)), [a, b], 0)
+    wire.on_sent(snap(chunk(b, 2)), [b], 0)  # job 2 meshed a empty: it left the snapshot
+    t_gone = wire.shown[-1][0]
+    wire.on_sent(snap(chunk(a, 9), chunk(b, 9)), [a, b], 0)
+    wire.arrivals.append((wire.sends[-1][0] + 0.1, node_name(a), 10))
+    assert wire.arrival(a, 2) == (t_gone, 0)
+    assert wire.arrival(a, 9) is not None and wire.arrival(a, 9)[1] == 10
