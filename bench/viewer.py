@@ -155,10 +155,10 @@ class Wire:
     frames: int = 0  # websocket frames received
 
     def on_sent(self, snap: Any, keys: list[Key], nbytes: int) -> None:
-        newest = max((c.version for c in snap.chunks.values()), default=-1)
-        self.shown.append((time.time(), newest, frozenset(snap.chunks)))
+        now, newest = time.time(), max((c.version for c in snap.chunks.values()), default=-1)
+        self.shown.append((now, newest, frozenset(snap.chunks)))
         if keys:
-            self.sends.append((time.time(), {k: snap.chunks[k].version for k in keys if k in snap.chunks}))
+            self.sends.append((now, {k: snap.chunks[k].version for k in keys if k in snap.chunks}))
 
     def on_frame(self, payload: Any) -> None:
         now = time.time()

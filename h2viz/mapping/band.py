@@ -27,7 +27,7 @@ def _candidate_t(
     depth: np.float32, jitter: np.ndarray, r: int, k: int, n_free: int, n_front: int, lay: np.ndarray
 ) -> np.float32:
     """t of candidate k of ray r: free-space strata, the band's front strata, then the truncation band.
-    lay = (band, front step, tr, step) in float32."""
+    lay = (band, front stride, tr, step) in float32."""
     if k < n_free:
         free_end = max(depth - lay[0], np.float32(0.0))
         return (np.float32(k) + jitter[r, k]) / np.float32(n_free) * free_end
@@ -124,7 +124,7 @@ def band_candidates(
             f"{tuple(origins.shape)}, {tuple(dirs.shape)}, {tuple(jitter.shape)}"
         )
     n_free, n_front = layout.n_free, layout.n_front
-    lay = np.array([layout.band_m, layout.front_step_m, layout.truncation_m, layout.step_m], np.float32)
+    lay = np.array([layout.band_m, layout.front_stride_m, layout.truncation_m, layout.step_m], np.float32)
     o = np.ascontiguousarray(origins.detach().numpy(), dtype=np.float32)
     d = np.ascontiguousarray(dirs.detach().numpy(), dtype=np.float32)
     z = np.ascontiguousarray(depth.detach().numpy(), dtype=np.float32)

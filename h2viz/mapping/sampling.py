@@ -103,10 +103,10 @@ class BandLayout:
     def n_candidates(self) -> int:
         return self.n_free + self.n_front + self.n_truncation
 
-    def with_exact_steps(self) -> BandLayout:
-        """The front step that tiles band_m - tr exactly in n_front strata."""
-        span = self.band_m - self.truncation_m
-        return BandLayout(self.band_m, self.truncation_m, self.step_m, span / max(self.n_front, 1), self.n_free)
+    @property
+    def front_stride_m(self) -> float:
+        """The front strata's width: front_step_m rounded so that n_front strata tile band_m - tr exactly."""
+        return (self.band_m - self.truncation_m) / max(self.n_front, 1)
 
 
 def band_samples(
@@ -122,16 +122,15 @@ def band_samples(
     candidates inside allocated voxels are kept. depth (R,) > 0. `fused` runs the numba kernel
     (h2viz.mapping.band) for CPU rays; the torch code below is its reference."""
     R, dev = depth.shape[0], depth.device
-    lay = layout.with_exact_steps()
-    n_free, n_front, n_trunc = lay.n_free, lay.n_front, lay.n_truncation
-    jitter = torch.rand(R, lay.n_candidates, generator=generator)  # (R,F+B) reproducible on any device
+    n_free, n_front, n_trunc = layout.n_free, layout.n_front, layout.n_truncation
+    jitter = torch.rand(R, layout.n_candidates, generator=generator)  # (R,F+N+B) reproducible on any device
     kernels = kernel_module("band") if fused and dev.type == "cpu" else None
     if kernels is not None:
-        points, t, ray, voxel = kernels.band_candidates(octree, origins, dirs, depth, jitter, lay)
+        points, t, ray, voxel = kernels.band_candidates(octree, origins, dirs, depth, jitter, layout)
         return Samples(points, t, ray, voxel, R)
     jitter = jitter.to(dev)
     f32 = lambda v: torch.tensor(v, dtype=torch.float32).to(depth.dtype)  # noqa: E731  (the kernel's float32)
-    band, front, tr, step = f32(lay.band_m), f32(lay.front_step_m), f32(lay.truncation_m), f32(lay.step_m)
+    band, front, tr, step = f32(layout.band_m), f32(layout.front_stride_m), f32(layout.truncation_m), f32(layout.step_m)
     k = torch.arange(n_front, device=dev, dtype=depth.dtype)
     t_front = (depth - band)[:, None] + (k + jitter[:, n_free : n_free + n_front]) * front  # (R,N)
     k = torch.arange(n_trunc, device=dev, dtype=depth.dtype)
@@ -140,8 +139,8 @@ def band_samples(
     j = torch.arange(n_free, device=dev, dtype=depth.dtype)
     t_free = (j + jitter[:, :n_free]) / max(n_free, 1) * free_end[:, None]  # (R,F)
     t = torch.cat([t_free, t_front, t_trunc], dim=1)  # (R,F+N+B) increasing along each row
-    points = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # (R,F+B,3)
-    voxel = octree.lookup_points(points.reshape(-1, 3))  # (R*(F+B),)
+    points = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # (R,F+N+B,3)
+    voxel = octree.lookup_points(points.reshape(-1, 3))  # (R*(F+N+B),)
     keep = (voxel >= 0) & (t.reshape(-1) > 0)
     ray = torch.arange(R, device=dev).repeat_interleave(t.shape[1])
     return Samples(points.reshape(-1, 3)[keep], t.reshape(-1)[keep], ray[keep], voxel[keep], R)
