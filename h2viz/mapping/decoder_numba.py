@@ -26,6 +26,11 @@ BLOCKS_PER_THREAD = 4
 """Sample blocks per thread: enough to balance the load, few enough that the per-block gradients stay small."""
 
 
+ZERO = np.float32(0.0)
+"""Every constant in the kernels is float32: a bare 0.0 is float64 in numba and turns the products it meets
+into float64 ones, which LLVM cannot pack eight to a vector (the backward pass ran 1.7x slower that way)."""
+
+
 @njit(inline=True)
 def _pre_activation(x: np.ndarray, p: int, w1t: np.ndarray, b1: np.ndarray, h: np.ndarray) -> None:
     """h (H,) <- W1 x[p] + b1, the hidden layer before its ReLU."""
@@ -47,10 +52,10 @@ def decode_range(
     for p in range(start, stop):
         _pre_activation(x, p, w1t, b1, h)
         for o in range(d_out):
-            acc = b2[o]
+            acc = ZERO
             for j in range(hidden):
-                acc += w2[o, j] * max(h[j], 0.0)
-            y[p, o] = acc
+                acc += w2[o, j] * max(h[j], ZERO)
+            y[p, o] = acc + b2[o]
 
 
 @njit(parallel=True, fastmath=True)
@@ -78,40 +83,42 @@ def _backward_kernel(
     g_b2: np.ndarray,
 ) -> None:
     """Gradients of sum(grad_y * decoder(x)): grad_x (N,D) when want_x, and per block (B,...) parameter gradients
-    g_w1t (B,D,H), g_b1 (B,H), g_w2 (B,O,H), g_b2 (B,O), zeroed here."""
+    g_w1t (B,D,H), g_b1 (B,H), g_w2 (B,O,H), g_b2 (B,O), overwritten here."""
     n, d_in, hidden, d_out = x.shape[0], x.shape[1], w1t.shape[1], w2.shape[0]
     n_blocks = g_b1.shape[0]
     for block in numba.prange(n_blocks):
-        gw1t, gb1, gw2, gb2 = g_w1t[block], g_b1[block], g_w2[block], g_b2[block]
-        gw1t[:] = 0.0
-        gb1[:] = 0.0
-        gw2[:] = 0.0
-        gb2[:] = 0.0
-        h = np.empty(hidden, dtype=x.dtype)
-        dh = np.empty(hidden, dtype=x.dtype)
+        gw1t = np.zeros((d_in, hidden), np.float32)  # this block's sums, written out once at the end
+        gb1 = np.zeros(hidden, np.float32)
+        gw2 = np.zeros((d_out, hidden), np.float32)
+        gb2 = np.zeros(d_out, np.float32)
+        h = np.empty(hidden, np.float32)
+        dh = np.empty(hidden, np.float32)
         for p in range(block * n // n_blocks, (block + 1) * n // n_blocks):
             _pre_activation(x, p, w1t, b1, h)  # recomputed: cheaper than storing (N,H)
-            for j in range(hidden):
-                dh[j] = 0.0
+            dh[:] = ZERO
             for o in range(d_out):
                 g = grad_y[p, o]
                 gb2[o] += g
+                w2o, gw2o = w2[o], gw2[o]
                 for j in range(hidden):
-                    a = max(h[j], 0.0)
-                    gw2[o, j] += g * a
-                    dh[j] += g * w2[o, j]
+                    alive = h[j] > ZERO
+                    gw2o[j] += g * h[j] if alive else ZERO
+                    dh[j] += g * w2o[j] if alive else ZERO
             for j in range(hidden):
-                if h[j] <= 0.0:
-                    dh[j] = 0.0
                 gb1[j] += dh[j]
             for k in range(d_in):
                 xk = x[p, k]
-                acc = 0.0
+                gk = gw1t[k]
                 for j in range(hidden):
-                    gw1t[k, j] += xk * dh[j]
-                    acc += w1t[k, j] * dh[j]
-                if want_x:
+                    gk[j] += xk * dh[j]
+            if want_x:
+                for k in range(d_in):
+                    acc = ZERO
+                    wk = w1t[k]
+                    for j in range(hidden):
+                        acc += wk[j] * dh[j]
                     grad_x[p, k] = acc
+        g_w1t[block], g_b1[block], g_w2[block], g_b2[block] = gw1t, gb1, gw2, gb2
 
 
 def is_supported(net: nn.Module) -> bool:
