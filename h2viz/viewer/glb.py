@@ -2,8 +2,10 @@
 positions quantised to 16 bits over the mesh's bounding box (KHR_mesh_quantization, undone by the node's
 translation and scale: 12 um steps over a 0.8 m chunk), linear-light 8-bit vertex colours, 16-bit indices
 when they fit, and one material whose alpha sets the opacity. Normals are not sent: viser's client
-recomputes smooth vertex normals for every mesh it loads; an all-zero NORMAL accessor without data keeps
-the glTF loader from switching the material to flat shading. About 16 bytes a vertex plus 6 a triangle.
+recomputes smooth vertex normals for every mesh it loads, into the NORMAL attribute the file declares. That
+accessor has no data (glTF reads it as zeros; without it the loader would switch to flat shading) and is
+FLOAT: three.js accumulates unnormalised face normals into the attribute's own array, and in an 8-bit one
+they round to zero (black, speckled shading). About 16 bytes a vertex plus 6 a triangle.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import struct
 
 import numpy as np
 
-_BYTE, _UBYTE, _SHORT, _UINT16, _UINT32 = 5120, 5121, 5122, 5123, 5125
+_UBYTE, _SHORT, _UINT16, _UINT32, _FLOAT = 5121, 5122, 5123, 5125, 5126
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
@@ -63,7 +65,7 @@ def mesh_glb(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, opacit
             "count": len(idx),
             "type": "SCALAR",
         },
-        {"componentType": _BYTE, "normalized": True, "count": n, "type": "VEC3"},  # zeros: the client recomputes
+        {"componentType": _FLOAT, "count": n, "type": "VEC3"},  # no data (zeros): the client computes normals here
     ]
     material = {
         "pbrMetallicRoughness": {

@@ -109,6 +109,7 @@ def test_glb_round_trips_quantised_geometry_and_linear_colours() -> None:
     primitive = gltf["meshes"][0]["primitives"][0]
     normal = gltf["accessors"][primitive["attributes"]["NORMAL"]]
     assert "bufferView" not in normal and normal["count"] == len(sphere.vertices)  # zeros, recomputed by viser
+    assert normal["componentType"] == 5126  # float: three.js accumulates face normals in the attribute's array
     rgba = _accessor(gltf, blob, 1, np.uint8, 4)[0]
     np.testing.assert_array_equal(rgba, [0, 55, 255, 255])  # sRGB 128 -> linear 0.2159 -> 55 / 255
     assert gltf["accessors"][2]["componentType"] == 5123  # 16-bit indices for a small mesh
