@@ -1,7 +1,7 @@
 """A compact binary glTF (GLB) writer for vertex-coloured triangle meshes, sized for streaming to viser:
 positions quantised to 16 bits over the mesh's bounding box (KHR_mesh_quantization, undone by the node's
 translation and scale: 12 um steps over a 0.8 m chunk), linear-light 8-bit vertex colours, 16-bit indices
-when they fit, and one material whose alpha sets the opacity. Normals are not sent: viser's client
+when they fit, and one single-sided material whose alpha sets the opacity. Normals are not sent: viser's client
 recomputes smooth vertex normals for every mesh it loads, into the NORMAL attribute the file declares. That
 accessor has no data (glTF reads it as zeros; without it the loader would switch to flat shading) and is
 FLOAT: three.js accumulates unnormalised face normals into the attribute's own array, and in an 8-bit one
@@ -74,7 +74,7 @@ def mesh_glb(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, opacit
             "roughnessFactor": 0.9,
         },
         "alphaMode": "BLEND" if opacity < 1.0 else "OPAQUE",
-        "doubleSided": True,
+        "doubleSided": False,  # faces point into free space: from outside a room, its near walls are not drawn
     }
     primitive = {"attributes": {"POSITION": 0, "NORMAL": 3, "COLOR_0": 1}, "indices": 2, "material": 0}
     gltf = {
