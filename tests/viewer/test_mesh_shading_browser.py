@@ -35,7 +35,9 @@ def slab_chunk() -> MeshChunk:
     grid = np.stack(np.meshgrid(*[np.linspace(0.0, CHUNK_M, n)] * 3, indexing="ij"), -1)  # (n,n,n,3)
     sdf = (grid - CENTRE) @ NORMAL
     vertices, faces, _, _ = marching_cubes(sdf, 0.0, spacing=(CELL_M,) * 3)
-    faces = faces[:, ::-1]  # counter-clockwise seen from +sdf, as h2viz's mesher winds them
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    if np.median(np.cross(b - a, c - a) @ NORMAL) < 0:  # wind them towards positive SDF, as h2viz's mesher does
+        faces = faces[:, ::-1]
     colors = np.full((len(vertices), 3), 170, np.uint8)
     return MeshChunk((0, 0, 0), vertices.astype(np.float32), faces.astype(np.int32), colors, version=1)
 
