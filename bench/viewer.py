@@ -37,19 +37,12 @@ sys.path.insert(0, str(ROOT))
 from h2viz.config import Config, load_config, source_config_file  # noqa: E402
 from h2viz.sources.base import FrameSource, make_source  # noqa: E402
 from h2viz.types import RgbdFrame  # noqa: E402
+from h2viz.viewer.chromium import CHROMIUM, CHROMIUM_ARGS  # noqa: E402
 from h2viz.viewer.server import Dashboard  # noqa: E402
 from h2viz.viewer.shapes import view_intrinsics  # noqa: E402
 from h2viz.viewer.wire import decode_frame  # noqa: E402
 from h2viz.worker import MappingWorker  # noqa: E402
 
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--no-first-run",
-    "--disable-sync",
-]
 RESOLUTIONS = [(80, 60), (160, 120), (320, 240), (640, 480)]
 FRAME_COUNTER = """
 window.__h2vizFrames = 0;
@@ -240,7 +233,7 @@ def mapping_run(
     browser = None
     pages: list[Any] = []
     if n_browsers:
-        browser = playwright.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
         pages = [browser.new_page(viewport={"width": 800, "height": 600}) for _ in range(n_browsers)]
         for page in pages:
             page.add_init_script(FRAME_COUNTER)

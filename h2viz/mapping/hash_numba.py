@@ -11,7 +11,8 @@ time inside a block (one table at a time is kinder to caches and the TLB); while
 prefetches the table rows of the point PREFETCH_AHEAD places further, so that cache misses overlap. The
 backward pass gives every level to exactly one thread (no two threads add into the same row), coarse and
 fine levels interleaved across threads; each level sums its points in order, so gradients are deterministic
-and do not depend on the thread count. It prefetches rows the same way (49k samples: 11 -> 6 ms a grid). F = 2 (the default) has its own blend, ~20 % faster than the loop.
+and do not depend on the thread count. It prefetches rows the same way (49k samples: 11 -> 6 ms a grid).
+F = 2 (the default) has its own blend, ~20 % faster than the loop.
 
 Compiled code is cached next to this file (or in numba's user cache directory when that is read-only, or
 in NUMBA_CACHE_DIR); without any writable cache the kernels compile in every process (a few seconds).
