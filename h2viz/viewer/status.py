@@ -72,8 +72,8 @@ class StatusPanels:
             self.time_plot = gui.add_uplot(
                 (np.zeros(1), np.zeros(1)),
                 (uplot.Series(label="frame"), uplot.Series(label="ms / frame", stroke="#28aaff", width=2)),
-                title="Time per frame (ms)",
-                scales={"x": {"time": False}},
+                title="Time per frame (ms, log)",  # log: the first frame (kernel warm-up) takes seconds
+                scales={"x": {"time": False}, "y": {"distr": 3}},
                 aspect=2.0,
             )
         with gui.add_folder("Input frame", expand_by_default=True):

@@ -16,7 +16,7 @@ from h2viz.types import FrameStats
 from h2viz.viewer.diff import block_signatures, diff_chunks, diff_signatures, group_cells
 from h2viz.viewer.glb import mesh_glb, srgb_to_linear_u8
 from h2viz.viewer.render_loop import FAR_M, background, client_view
-from h2viz.viewer.server import initial_view
+from h2viz.viewer.server import initial_view, make_viser_server
 from h2viz.viewer.shapes import (
     colorize_depth,
     cube_edges,
@@ -27,7 +27,7 @@ from h2viz.viewer.shapes import (
     view_intrinsics,
     wxyz_position,
 )
-from h2viz.viewer.status import plot_data, progress_markdown
+from h2viz.viewer.status import StatusPanels, plot_data, progress_markdown
 from h2viz.worker import RenderedView
 from tests.viewer.fakes import BoxRoomSource, chunk, snapshot
 
@@ -202,3 +202,17 @@ def test_panel_text_and_plot_data() -> None:
     np.testing.assert_array_equal(x, [0, 1, 2])
     assert np.isnan(sdf[1]) and sdf[0] == 0.1  # the log plot cannot show zero
     np.testing.assert_allclose(ms, [100, 200, 300])
+
+
+def test_both_plots_are_logarithmic() -> None:
+    """The first frame (kernel warm-up) takes seconds: on a linear axis it flattens every later frame."""
+    server = make_viser_server("127.0.0.1", 0)
+    try:
+        panels = StatusPanels(server.gui)
+        stats = tuple(FrameStats(i, 30.0 if i == 0 else 0.5, 5, 100, 2, {"rgb": 0.5}) for i in range(3))
+        panels.update(snapshot(stats=stats, voxels=np.zeros((7, 3))))
+        assert panels.time_plot.scales["y"]["distr"] == 3  # uPlot's log scale
+        assert panels.loss_plot is not None and panels.loss_plot.scales["y"]["distr"] == 3
+        np.testing.assert_allclose(panels.time_plot.data[1], [30000, 500, 500])
+    finally:
+        server.stop()
