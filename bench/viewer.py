@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 from h2viz.config import Config, load_config, source_config_file  # noqa: E402
 from h2viz.sources.base import FrameSource, make_source  # noqa: E402
 from h2viz.types import RgbdFrame  # noqa: E402
-from h2viz.viewer.chromium import CHROMIUM, CHROMIUM_ARGS  # noqa: E402
+from h2viz.viewer.chromium import launch_chromium  # noqa: E402
 from h2viz.viewer.server import Dashboard  # noqa: E402
 from h2viz.viewer.shapes import view_intrinsics  # noqa: E402
 from h2viz.viewer.wire import decode_frame  # noqa: E402
@@ -233,7 +233,7 @@ def mapping_run(
     browser = None
     pages: list[Any] = []
     if n_browsers:
-        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        browser = launch_chromium(playwright)
         pages = [browser.new_page(viewport={"width": 800, "height": 600}) for _ in range(n_browsers)]
         for page in pages:
             page.add_init_script(FRAME_COUNTER)

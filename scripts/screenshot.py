@@ -22,7 +22,7 @@ from playwright.sync_api import Page, sync_playwright
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from h2viz.viewer.chromium import CHROMIUM, CHROMIUM_ARGS  # noqa: E402
+from h2viz.viewer.chromium import launch_chromium  # noqa: E402
 
 
 def free_port() -> int:
@@ -64,7 +64,7 @@ def main() -> None:
     try:
         url = wait_for_url(app)
         with sync_playwright() as playwright:
-            browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+            browser = launch_chromium(playwright)
             page = browser.new_page(viewport={"width": width, "height": height})
             page.goto(url)
             deadline = time.monotonic() + args.timeout
@@ -76,6 +76,7 @@ def main() -> None:
                 close.click()  # e.g. chromium's "software WebGL" notice
             page.wait_for_timeout(3000)  # the newest mesh chunks and a few frames drawn
             args.out.parent.mkdir(parents=True, exist_ok=True)
+            done = frames_done(page)  # mapping went on meanwhile: the frames the picture shows
             page.screenshot(path=str(args.out))
             browser.close()
         print(f"saved {args.out} after {done} frames")

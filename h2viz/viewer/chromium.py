@@ -5,6 +5,7 @@ and let it run as root in a container."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -15,3 +16,8 @@ CHROMIUM_ARGS = [
     "--no-first-run",
     "--disable-sync",
 ]
+
+
+def launch_chromium(playwright: Any) -> Any:
+    """A headless chromium Browser from Playwright's sync API (the caller's `sync_playwright()` object)."""
+    return playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)

@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from h2viz.viewer.chromium import CHROMIUM, CHROMIUM_ARGS
+from h2viz.viewer.chromium import CHROMIUM, launch_chromium
 from h2viz.viewer.wire import WireMessage, decode_frame
 
 
@@ -18,7 +18,7 @@ def launch(playwright: Any) -> Any:
     """Headless chromium from /usr/bin (skips the test when it is not installed)."""
     if not CHROMIUM.exists():
         pytest.skip("chromium is not installed (apt-get install chromium)")
-    return playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
+    return launch_chromium(playwright)
 
 
 @dataclass
