@@ -409,6 +409,26 @@ def test_each_frame_reaches_the_snapshots_through_the_mesh_thread(make_worker: F
     assert records and all(r.finished >= r.submitted for r in records)
 
 
+def test_no_live_mesh_without_viewers_and_the_first_viewer_gets_every_change() -> None:
+    mapper = FakeMapper(delay_s=0.05)
+    worker = MappingWorker(BoxRoomSource(n=14), mapper, Config(), WorkerSettings(mesh_update_hz=20.0))  # type: ignore[arg-type]
+    worker.set_viewers(0)
+    assert not worker.live
+    try:
+        worker.start()
+        snap = wait_for(worker, lambda s: s.frames_done >= 6)
+        assert not worker.meshing.passes and not snap.chunks  # mapped, but nobody watches: nothing meshed
+        chunks_so_far = {tuple(int(c) for c in k) for k in np.unique(mapper._voxels // mapper.chunk_voxels, axis=0)}
+        worker.set_viewers(1)
+        assert worker.live
+        wait_for(worker, lambda s: bool(s.chunks))
+        assert chunks_so_far <= set(worker.meshing.passes[0].chunks)  # the backlog, in the first job
+        assert worker.wait_finished(20)
+        assert set(worker.slot.get()[1].chunks) == set(mapper.mesh_chunks())
+    finally:
+        worker.stop()
+
+
 def test_live_mesh_is_coarse_and_downloads_use_the_mapping_resolution(make_worker: Factory) -> None:
     cfg = Config()
     cfg.mapping = tiny_mapping_config()  # mesh_resolution 4: what downloads use

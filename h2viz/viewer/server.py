@@ -89,6 +89,9 @@ class Dashboard:
         self._view_set = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="h2viz-dashboard", daemon=True)
+        self.server.on_client_connect(self._count_viewers)
+        self.server.on_client_disconnect(self._count_viewers)
+        self._count_viewers()
 
     @property
     def url(self) -> str:
@@ -156,6 +159,10 @@ class Dashboard:
             for client in self.server.get_clients().values():
                 client.add_notification("Mapping problem", message, auto_close_seconds=15.0, color="red")
         self._errors_shown = len(errors)
+
+    def _count_viewers(self, _client: Any = None) -> None:
+        """Tell the worker how many browsers are connected (it keeps the live mesh only for someone)."""
+        self.worker.set_viewers(len(self.server.get_clients()))
 
     def client_count(self) -> int:
         return len(self.server.get_clients())

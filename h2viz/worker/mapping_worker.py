@@ -72,6 +72,7 @@ class MappingWorker(CommandServing):
         self._errors: list[str] = []
         self._failures = self._consecutive = self._unmeshed = self._version = 0
         self._mesh_dirty = False
+        self._viewers: int | None = None  # connected browsers; None: unknown, keep the live mesh up to date
         self._last_map_s = 0.0
         self._publish_lock = threading.Lock()
         self._chunks_out: dict = {}  # the chunks snapshots carry (changed only by the mesh thread's publish)
@@ -103,6 +104,17 @@ class MappingWorker(CommandServing):
         else:
             self._commands.put(cmd)
         return cmd.reply
+
+    def set_viewers(self, count: int) -> None:
+        """How many browsers watch the map. With none, frames are not meshed or scored while mapping (nobody
+        would see it, and it costs the mapper a quarter of the CPU); the first job after one connects covers
+        every voxel changed meanwhile."""
+        self._viewers = max(0, int(count))
+
+    @property
+    def live(self) -> bool:
+        """The live mesh and metrics are kept up to date while mapping (someone watches, or nobody said)."""
+        return self._viewers is None or self._viewers > 0
 
     @property
     def errors(self) -> tuple[str, ...]:
@@ -176,9 +188,9 @@ class MappingWorker(CommandServing):
         self._poses.append(frame.T_world_camera)
         self._current = frame
         every = self.settings.metrics_every
-        if self._gt is not None and every > 0 and len(self._stats) % every == 0:
+        if self.live and self._gt is not None and every > 0 and len(self._stats) % every == 0:
             self._refresh_metrics()
-        if self._mesh_due() and (self._mesh_dirty or not self.meshing.busy):
+        if self.live and self._mesh_due() and (self._mesh_dirty or not self.meshing.busy):
             self._submit_mesh(REFRESH_S)  # not while a job runs: freezing the field costs ~15 ms a frame
         self._resolve_steps(stats)
         self._publish()

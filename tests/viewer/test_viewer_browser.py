@@ -52,6 +52,7 @@ def live() -> Iterator[Live]:
         requests: list[str] = []
         page.on("request", lambda r: requests.append(r.url))
         wire = WireRecorder().attach(page)
+        assert not worker.live  # no browser yet: nothing is meshed while mapping
         page.goto(dashboard.url)
         yield Live(worker, mapper, dashboard, browser, page, wire, requests)
         browser.close()
@@ -67,6 +68,7 @@ def test_scene_reaches_the_browser_and_grows(live: Live) -> None:
     assert wire.names("LineSegmentsMessage", "/trajectory/") == {"/trajectory/path"}
     # viser streams the scene to a page before it lists the page among its clients
     wait_until(page, lambda: live.dashboard.client_count() == 1, what="the page counted as a client")
+    assert live.worker.live
     page.get_by_role("tab", name="View").click()
     page.get_by_role("checkbox", name="Octree leaves").click()
     blocks = wait_until(page, lambda: len(wire.names("LineSegmentsMessage", "/octree/l0/")), what="octree blocks")
