@@ -82,6 +82,8 @@ class Run:
     def label(self) -> str:
         if self.browsers < 0:
             return "headless (no dashboard, no meshing)"
+        if self.browsers == 0:
+            return "0 browser(s) (dashboard up, nothing meshed until a browser connects)"
         return f"{self.browsers} browser(s)" + (", recording page 0's websocket" if self.recorded else "")
 
 
