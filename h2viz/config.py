@@ -198,6 +198,11 @@ class MappingConfig:
     """Weight of the SDF loss inside the truncation band."""
     mesh_resolution: int = 8
     """Marching-cubes samples per leaf voxel edge."""
+    mesh_prior_band: float = 1.5
+    """Meshing keeps the prior's sign where the corner priors put a point more than this many truncation
+    distances from their surface (0 = off; no effect with priors off): the residual may move the surface that far
+    only within the band. Behind observed surfaces and in free space nothing constrains the residual, and hash
+    collisions there would leave spurious sheets 5-10 cm from the surface."""
     chunk_voxels: int = 8
     """Leaf voxels per mesh-chunk edge (chunks are re-meshed only when touched)."""
     mesh_every: int = 0

@@ -235,7 +235,8 @@ class Mapper:
     def _frozen_job(self, mesher: ChunkedMesher, refresh_s: float, whole: bool) -> MeshJob:
         meshable = np.flatnonzero(self.priors.initialised(self.octree.n_voxels))  # (V',) voxel ids
         dirty = self.touched[meshable] & (not whole)
-        field = FrozenField(self.field, self.cfg.truncation_m)
+        band = self.cfg.mesh_prior_band if self.cfg.priors else 0.0
+        field = FrozenField(self.field, self.cfg.truncation_m, band)
         coords = self.octree.voxel_coords()[meshable]
         return MeshJob(mesher, coords, meshable, dirty, field, self.version, self.frames_done, refresh_s, whole)
 

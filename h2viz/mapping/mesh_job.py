@@ -23,6 +23,14 @@ from h2viz.types import MeshChunk
 FIELD_BATCH = 1 << 16  # points per network call (the activations stay in cache)
 
 
+def keep_prior_sign(sdf: np.ndarray, prior: np.ndarray, band: float) -> np.ndarray:
+    """SDF (N,) where every point the prior (N,) puts more than `band` from its surface (all in truncation units)
+    has the prior's sign: the surface can be moved by the residual only within the band around the surface the
+    depth measured. Keeps meshing from drawing the residual's unconstrained zero crossings."""
+    flip = (np.abs(prior) > band) & (np.sign(sdf) != np.sign(prior))
+    return np.where(flip, prior, sdf).astype(np.float32)
+
+
 class FrozenField:
     """A copy of a HybridField's parameters at one moment; evaluating it never touches the live field.
 
@@ -31,13 +39,14 @@ class FrozenField:
     thread leaves the cores to mapping and builds no large intermediate arrays.
     """
 
-    def __init__(self, field: HybridField, truncation_m: float) -> None:
+    def __init__(self, field: HybridField, truncation_m: float, prior_band: float = 0.0) -> None:
         with torch.no_grad():
             frozen = copy.deepcopy(field)
             frozen.requires_grad_(False)
             frozen.priors = frozen.priors.detach()
         self.field = frozen
         self.truncation_m = float(truncation_m)
+        self.prior_band = float(prior_band)  # tr units; 0 = surfaces wherever the residual puts them
         self.device = frozen.priors.device
         self._priors = frozen.priors.cpu().numpy().astype(np.float32)  # (C,)
         self._corner_ids = frozen.corner_ids.cpu().numpy()  # (V,8) int64
@@ -55,8 +64,10 @@ class FrozenField:
 
     @torch.no_grad()
     def sdf_m(self, points: np.ndarray, voxel_ids: np.ndarray) -> np.ndarray:
-        """SDF in metres (N,) float32 at points (N,3) lying in (or on the faces of) voxels `voxel_ids` (N,)."""
-        out = self.prior(points, voxel_ids)
+        """SDF in metres (N,) float32 at points (N,3) lying in (or on the faces of) voxels `voxel_ids` (N,), with
+        the prior's sign beyond `prior_band` (see `keep_prior_sign`)."""
+        prior = self.prior(points, voxel_ids)
+        out = prior.copy()
         if self.field.use_residual:
             for i in range(0, len(points), FIELD_BATCH):
                 p = torch.from_numpy(np.ascontiguousarray(points[i : i + FIELD_BATCH], np.float32)).to(self.device)
@@ -67,6 +78,8 @@ class FrozenField:
                     residual = np.empty((feats.shape[0], 1), np.float32)
                     decode_range(feats.contiguous().numpy(), *self._decoder, 0, feats.shape[0], residual)
                 out[i : i + FIELD_BATCH] += self.field.bound(torch.from_numpy(residual))[:, 0].numpy()
+        if self.prior_band > 0:
+            out = keep_prior_sign(out, prior, self.prior_band)
         return out * np.float32(self.truncation_m)
 
     @torch.no_grad()

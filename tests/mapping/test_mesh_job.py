@@ -13,7 +13,7 @@ import torch
 
 from h2viz.config import MappingConfig
 from h2viz.mapping.mapper import Mapper
-from h2viz.mapping.mesh_job import FrozenField
+from h2viz.mapping.mesh_job import FrozenField, keep_prior_sign
 from h2viz.mapping.meshing import ChunkedMesher, merge_chunks
 from tests.mapping.analytic import Scene, orbit
 
@@ -112,3 +112,42 @@ def test_a_job_replacing_a_waiting_one_keeps_its_dirty_voxels() -> None:
     assert set(merged.voxel_ids[merged.dirty_voxels]) == had
     assert merged.field is newer.field and merged.version == newer.version
     assert replace(merged, refresh_s=0.0).refresh_s == 0.0
+
+
+def crossings(values: np.ndarray) -> np.ndarray:
+    """Indices i where values (N,) change sign between i and i+1."""
+    return np.flatnonzero(np.sign(values[:-1]) != np.sign(values[1:]))
+
+
+def test_meshing_keeps_the_prior_sign_beyond_the_band() -> None:
+    """Along a ray through a surface (prior = signed distance, tr units): a residual bubble 1.8 tr behind the
+    surface would add a sheet there; beyond the band it is gone, while a residual shifting the surface by 0.8 tr
+    (a correction within the band) is kept as it is."""
+    prior = np.linspace(-3.0, 3.0, 600, dtype=np.float32)  # ~0.01 tr steps, none exactly 0
+    bubble = prior + 2.0 * np.exp(-(((prior + 1.8) / 0.1) ** 2)).astype(np.float32)
+    assert len(crossings(bubble)) == 3  # the surface and both sides of the spurious sheet
+    kept = keep_prior_sign(bubble, prior, 1.5)
+    assert list(crossings(kept)) == list(crossings(prior))  # only the measured surface is left
+    shifted = prior + np.float32(0.8)
+    np.testing.assert_array_equal(keep_prior_sign(shifted, prior, 1.5), shifted)
+    assert abs(prior[crossings(shifted)[0]] + 0.8) < 0.02  # the corrected surface, 0.8 tr in front
+    np.testing.assert_array_equal(keep_prior_sign(bubble, prior, 10.0), bubble)  # a wide band changes nothing
+
+
+def test_mesh_jobs_use_the_configured_band_and_moved_surfaces_within_it_are_meshed() -> None:
+    mapper, scene, _ = sphere_mapper(2)
+    job = mapper.mesh_job()
+    assert job is not None and job.field.prior_band == mapper.cfg.mesh_prior_band == 1.5
+    with torch.no_grad():  # a residual of +0.8 tr everywhere: the surface moves 4 cm into the sphere
+        last = mapper.field.geo_mlp[-1]
+        last.weight.zero_()
+        b = mapper.cfg.residual_bound
+        last.bias.fill_(float(b * np.arctanh(0.8 / b)))
+    mapper.touched[:] = True
+    mesh = mapper.mesh()
+    inside = np.median(scene.sdf(np.asarray(mesh.vertices)))
+    assert abs(inside + 0.8 * mapper.cfg.truncation_m) < 0.01, inside
+    assert len(mesh.faces) > 1000
+    off, _, _ = sphere_mapper(1, priors=False)
+    job = off.mesh_job()
+    assert job is not None and job.field.prior_band == 0.0  # without priors there is no band
