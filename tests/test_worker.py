@@ -17,7 +17,7 @@ import trimesh
 from h2viz.config import Config
 from h2viz.errors import H2vizError
 from h2viz.sources.base import make_source
-from h2viz.types import KeyframeState
+from h2viz.types import KeyframeState, RgbdFrame
 from h2viz.worker import LatestSlot, MappingWorker, RenderedView, WorkerSettings
 from h2viz.worker.mesh_thread import MeshThread
 from h2viz.worker.requests import scaled_intrinsics
@@ -100,6 +100,33 @@ def test_realtime_mode_takes_the_newest_frame_and_counts_drops(make_worker: Fact
     mapped = [s.index for s in snap.stats]
     assert snap.dropped > 10 and snap.frames_done + snap.dropped == 40
     assert mapped == sorted(mapped) and mapped[-1] == 39
+
+
+class SlowRoomSource(BoxRoomSource):
+    """Room frames at 30 Hz timestamps that take 0.1 s each to read: a stream faster than its reader."""
+
+    def __init__(self, n: int) -> None:
+        super().__init__(n=n)
+        self.loaded: list[int] = []
+
+    def timestamp(self, position: int, key: object) -> float | None:
+        return int(key) / 30.0  # type: ignore[call-overload]
+
+    def load(self, position: int, key: object) -> RgbdFrame:
+        time.sleep(0.1)
+        self.loaded.append(int(key))  # type: ignore[call-overload]
+        return super().load(position, key)  # type: ignore[arg-type]
+
+
+def test_realtime_mode_passes_over_overdue_frames_without_reading_them(make_worker: Factory) -> None:
+    source = SlowRoomSource(n=60)  # 2 s of stream; reading every frame would take 6 s
+    worker = make_worker(source, FakeMapper(), realtime=True)
+    assert worker.wait_finished(30)
+    snap = worker.slot.get()[1]
+    assert snap.frames_done + snap.dropped == 60
+    assert len(source.loaded) < 40  # only frames due when the reader got to them (about one in three)
+    assert source.loaded == sorted(source.loaded) and source.loaded[-1] == 59
+    assert snap.stats[-1].index == 59
 
 
 def test_pause_step_resume(make_worker: Factory) -> None:

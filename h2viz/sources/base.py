@@ -55,6 +55,11 @@ class FrameSource(ABC):
         """The scene's ground-truth mesh when the source has one."""
         return None
 
+    def timestamp(self, position: int, key: Hashable) -> float | None:
+        """A frame's timestamp in seconds when the source knows it without loading the frame (None: only loading
+        tells). Real-time playback passes over frames already overdue without reading them."""
+        return None
+
     def describe(self) -> str:
         return f"{self.format_name} {self.cfg.path}"
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Hashable
 from pathlib import Path
 
 import cv2
@@ -12,7 +13,7 @@ import numpy as np
 
 from h2viz.config import SourceConfig
 from h2viz.errors import FrameError, SourceError
-from h2viz.sources.base import read_color, read_depth, read_matrix
+from h2viz.sources.base import FrameSource, read_color, read_depth, read_matrix
 from h2viz.types import RgbdFrame
 
 log = logging.getLogger("h2viz.sources")
@@ -20,6 +21,14 @@ log = logging.getLogger("h2viz.sources")
 # Largest relative difference between the colour and depth aspect ratios that resizing may absorb
 # (ScanNet's 1296x968 colour against its 640x480 depth differs by 0.4 %).
 MAX_ASPECT_MISMATCH = 0.02
+NUMBERED_FPS = 30.0  # numbered-file layouts carry no timestamps: file number / the sensors' rate
+
+
+class NumberedSource(FrameSource):
+    """A layout of numbered files whose keys are the file numbers (timestamp = number / NUMBERED_FPS)."""
+
+    def timestamp(self, position: int, key: Hashable) -> float | None:
+        return int(key) / NUMBERED_FPS  # type: ignore[call-overload]
 
 
 def pinhole(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
@@ -111,7 +120,7 @@ def numbered_frame(
     K: np.ndarray,
     T_world_camera: np.ndarray,
     invalid: int | None = None,
-    fps: float = 30.0,
+    fps: float = NUMBERED_FPS,
 ) -> RgbdFrame:
     """A frame of a numbered-file layout: depth in metres, colour fitted to the depth size,
     timestamp = file number / fps (these layouts carry no timestamps)."""

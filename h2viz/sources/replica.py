@@ -16,8 +16,8 @@ import numpy as np
 
 from h2viz.config import SourceConfig
 from h2viz.errors import FrameError, SourceError
-from h2viz.sources.base import FrameSource
 from h2viz.sources.folders import (
+    NumberedSource,
     configured_intrinsics,
     depth_scale_m,
     has_numbered_file,
@@ -53,7 +53,7 @@ def read_trajectory(path: Path) -> list[np.ndarray | None]:
     return poses
 
 
-class ReplicaSource(FrameSource):
+class ReplicaSource(NumberedSource):
     """Replica sequences as rendered for NICE-SLAM (depth / 6553.5 m, timestamps = index / 30 s)."""
 
     format_name = "replica"

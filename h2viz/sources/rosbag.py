@@ -130,6 +130,9 @@ class RosbagSource(FrameSource):
     def keys(self) -> Sequence[Hashable]:
         return self._keys
 
+    def timestamp(self, position: int, key: Hashable) -> float | None:
+        return key.depth_stamp_ns * 1e-9 if isinstance(key, FrameKey) else None
+
     def describe(self) -> str:
         poses = "/tf" if self.topics.tf else self.topics.pose
         return f"rosbag {self.bag.path} (depth {self.topics.depth}, colour {self.topics.rgb}, poses {poses})"

@@ -12,8 +12,8 @@ from pathlib import Path
 
 from h2viz.config import SourceConfig
 from h2viz.errors import SourceError
-from h2viz.sources.base import FrameSource
 from h2viz.sources.folders import (
+    NumberedSource,
     configured_intrinsics,
     depth_scale_m,
     has_numbered_file,
@@ -30,7 +30,7 @@ COLOR_PATTERN = r"(\d+)\.jpg"
 DEPTH_PATTERN = r"(\d+)\.png"
 
 
-class ScanNetSource(FrameSource):
+class ScanNetSource(NumberedSource):
     """ScanNet scans (depth / 1000 m, colour resized to the depth size, frames sorted numerically)."""
 
     format_name = "scannet"

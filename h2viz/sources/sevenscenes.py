@@ -17,8 +17,8 @@ import numpy as np
 
 from h2viz.config import SourceConfig
 from h2viz.errors import SourceError
-from h2viz.sources.base import FrameSource
 from h2viz.sources.folders import (
+    NumberedSource,
     configured_intrinsics,
     depth_scale_m,
     has_numbered_file,
@@ -51,7 +51,7 @@ def find_intrinsics(root: Path) -> np.ndarray | None:
     return None
 
 
-class SevenScenesSource(FrameSource):
+class SevenScenesSource(NumberedSource):
     """7-Scenes / 3DMatch sequence folders (depth / 1000 m, 65535 = invalid)."""
 
     format_name = "7scenes"

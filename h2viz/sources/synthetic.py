@@ -51,6 +51,7 @@ class SyntheticSource(FrameSource):
         self.K = intrinsics(sc.width, sc.height, sc.fov_deg)
         self.poses = trajectory(self.scene, sc.n_frames)  # (n,4,4)
         self._pending: dict[int, Future[RgbdFrame]] = {}
+        self._expected: int | None = None  # the key a sequential reader asks for next
         self._pool: ThreadPoolExecutor | None = None
         self._lock = threading.Lock()
 
@@ -65,6 +66,9 @@ class SyntheticSource(FrameSource):
 
     def keys(self) -> Sequence[Hashable]:
         return range(self.cfg.synthetic.n_frames)
+
+    def timestamp(self, position: int, key: Hashable) -> float | None:
+        return int(key) / FPS  # type: ignore[call-overload]
 
     def load(self, position: int, key: Hashable) -> RgbdFrame:
         if not isinstance(key, int) or not 0 <= key < len(self.poses):
@@ -95,17 +99,20 @@ class SyntheticSource(FrameSource):
         )
 
     def _prefetch_after(self, key: int) -> None:
-        """Start rendering the next `prefetch` selected frames after `key` in the background."""
+        """Start rendering the next `prefetch` selected frames after `key` in the background, while frames are
+        read in order (a reader passing over frames, as real-time playback does, would not use them)."""
         n = self.cfg.synthetic.prefetch
         if n <= 0:
             return
         upcoming = [k for _, k in self.selected() if isinstance(k, int) and k > key][:n]
         with self._lock:
+            jumped = self._expected is not None and key != self._expected
+            self._expected = upcoming[0] if upcoming else None
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="h2viz-synthetic")
-            for stale in [k for k in self._pending if k <= key]:
+            for stale in [k for k in self._pending if k <= key or jumped]:
                 self._pending.pop(stale).cancel()
-            for k in upcoming:
+            for k in upcoming if not jumped else ():
                 if k not in self._pending:
                     self._pending[k] = self._pool.submit(self.render_frame, k)
 

@@ -164,6 +164,9 @@ class TumSource(FrameSource):
     def keys(self) -> Sequence[Hashable]:
         return list(range(len(self.depth_t)))
 
+    def timestamp(self, position: int, key: Hashable) -> float | None:
+        return float(self.depth_t[int(key)])  # type: ignore[call-overload]
+
     def load(self, position: int, key: Hashable) -> RgbdFrame:
         assert isinstance(key, int)
         depth_path = self.root / self.depth_names[key]

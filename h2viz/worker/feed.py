@@ -83,6 +83,12 @@ class FrameFeed:
             while self._position < len(self._items) and not self._stop.is_set():
                 if 0 < self._max_frames <= self.read:
                     break
+                if self._overdue(clock):  # behind the stream's clock: the next frame is due already
+                    self._position += max(1, self._settings.stride)
+                    self.read += 1
+                    with self._cond:
+                        self.dropped += 1
+                    continue
                 frame = self._source.get(*self._items[self._position])
                 self._position += max(1, self._settings.stride)
                 self.read += 1
@@ -93,6 +99,18 @@ class FrameFeed:
         with self._cond:
             self._frames.append(END)
             self._cond.notify_all()
+
+    def _overdue(self, clock: tuple[float, float] | None) -> bool:
+        """Real-time playback whose reading fell behind (a slow source, or a rendered one): when the frame after
+        the current one is due already by the stream's clock, the current one is passed over without reading it
+        (sources that know timestamps before loading; the others are read and then dropped)."""
+        if not self._settings.realtime or clock is None or self._hold.is_set():
+            return False
+        following = self._position + max(1, self._settings.stride)
+        if following >= len(self._items):
+            return False
+        due = self._source.timestamp(*self._items[following])
+        return due is not None and due <= clock[1] + (time.monotonic() - clock[0])
 
     def _deliver(self, frame: RgbdFrame, clock: tuple[float, float] | None) -> tuple[float, float] | None:
         if not self._settings.realtime:

@@ -43,6 +43,8 @@ def check_source(src: FrameSource, fx: Fixture, rgb_tol: float, pose_tol: float 
         assert f.depth_m.dtype == np.float32 and f.rgb.dtype == np.uint8
         assert np.abs(f.rgb.astype(float) - fx.rgb[i]).mean() <= rgb_tol
         assert f.timestamp == pytest.approx(fx.timestamps[i], abs=1e-9)
+    known = {position: src.timestamp(position, key) for position, key in src.selected()}  # without loading
+    assert [known[f.index] for f in frames] == pytest.approx([f.timestamp for f in frames], abs=1e-9)
     assert len(src.skipped) == len(fx.bad)
     for (pos, name), skipped in zip(sorted(fx.bad.items()), src.skipped, strict=True):
         assert name in skipped.reason, (pos, skipped)

@@ -67,8 +67,11 @@ def test_each_bag_kind_reads_every_frame_exactly(tmp_path: Path, kind: str) -> N
     assert detect_format(path) == "rosbag"
     src = make_source(SourceConfig(path=str(path)))
     assert isinstance(src, RosbagSource) and len(src) == len(FRAMES)
-    check_frames(list(src), FRAMES)
+    frames = list(src)
+    check_frames(frames, FRAMES)
     assert src.skipped == [] and src.dropped == 0
+    known = [src.timestamp(position, key) for position, key in src.selected()]  # without loading
+    assert known == pytest.approx([f.timestamp for f in frames], abs=1e-9)
     # random access through load() gives the same frames as the streaming pass
     position, key = src.selected()[7]
     frame = src.get(position, key)

@@ -57,6 +57,7 @@ def test_frames_have_the_documented_layout(src: SyntheticSource) -> None:
     frames = list(three)
     assert [f.index for f in frames] == [0, 1, 2]
     assert [f.timestamp for f in frames] == pytest.approx([0.0, 1 / FPS, 2 / FPS])
+    assert [three.timestamp(p, k) for p, k in three.selected()] == pytest.approx([0.0, 1 / FPS, 2 / FPS])
     f = frames[1]
     assert f.rgb.shape == (H, W, 3) and f.rgb.dtype == np.uint8
     assert f.depth_m.shape == (H, W) and f.depth_m.dtype == np.float32
@@ -75,6 +76,25 @@ def test_same_seed_gives_identical_frames_with_or_without_prefetch() -> None:
         np.testing.assert_array_equal(fa.rgb, fb.rgb)
         np.testing.assert_array_equal(fa.depth_m, fb.depth_m)
         np.testing.assert_array_equal(fa.T_world_camera, fb.T_world_camera)
+
+
+def test_prefetch_renders_ahead_only_while_frames_are_read_in_order() -> None:
+    source = make(n_frames=30, prefetch=2)
+    rendered: list[int] = []
+    render = source.render_frame
+    source.render_frame = lambda index: rendered.append(index) or render(index)  # type: ignore[method-assign]
+    try:
+        source.load(0, 0)
+        source.load(1, 1)
+        assert set(source._pending) == {2, 3}  # read in order: the next two are rendered ahead
+        source.load(20, 20)  # 2..19 passed over (real-time playback): nothing is rendered ahead
+        assert not source._pending
+        source.load(21, 21)  # in order again
+        assert set(source._pending) == {22, 23}
+        source.close()
+        assert not set(rendered) & set(range(4, 20))
+    finally:
+        source.close()
 
 
 def test_different_seed_gives_a_different_scene(src: SyntheticSource) -> None:
