@@ -109,9 +109,6 @@ class SlowRoomSource(BoxRoomSource):
         super().__init__(n=n)
         self.loaded: list[int] = []
 
-    def timestamp(self, position: int, key: object) -> float | None:
-        return int(key) / 30.0  # type: ignore[call-overload]
-
     def load(self, position: int, key: object) -> RgbdFrame:
         time.sleep(0.1)
         self.loaded.append(int(key))  # type: ignore[call-overload]

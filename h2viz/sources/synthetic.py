@@ -108,11 +108,13 @@ class SyntheticSource(FrameSource):
         with self._lock:
             jumped = self._expected is not None and key != self._expected
             self._expected = upcoming[0] if upcoming else None
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="h2viz-synthetic")
             for stale in [k for k in self._pending if k <= key or jumped]:
                 self._pending.pop(stale).cancel()
-            for k in upcoming if not jumped else ():
+            if jumped:
+                return
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="h2viz-synthetic")
+            for k in upcoming:
                 if k not in self._pending:
                     self._pending[k] = self._pool.submit(self.render_frame, k)
 

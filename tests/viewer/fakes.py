@@ -68,6 +68,9 @@ class BoxRoomSource(FrameSource):
     def keys(self) -> Sequence[Hashable]:
         return list(range(self.n))
 
+    def timestamp(self, position: int, key: Hashable) -> float:
+        return int(key) / 30.0  # type: ignore[call-overload]
+
     def load(self, position: int, key: Hashable) -> RgbdFrame:
         i = int(key)  # type: ignore[call-overload]
         if i in self.fail_keys:
@@ -75,7 +78,7 @@ class BoxRoomSource(FrameSource):
         K = intrinsics(self.width, self.height)
         T = room_pose(i, self.n)
         depth, hits, _ = trace_room(K, T, self.height, self.width)
-        return RgbdFrame(i, i / 30.0, room_color(hits), depth, K, T, name=f"room/{i}")
+        return RgbdFrame(i, self.timestamp(position, key), room_color(hits), depth, K, T, name=f"room/{i}")
 
     def ground_truth_mesh(self) -> trimesh.Trimesh:
         return trimesh.creation.box(bounds=np.stack([ROOM_MIN, ROOM_MAX]))
