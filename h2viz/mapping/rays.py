@@ -24,7 +24,9 @@ class RayBatch:
 
 
 class FrameRays:
-    """One frame's colour, depth and pixel rays on the device; sampling touches only valid-depth pixels."""
+    """One frame's valid-depth pixels kept compactly for training: pixel ids (int32), depth and colour, 11 bytes a
+    pixel. Ray directions are computed for the pixels a batch samples, not stored: keyframes accumulate over a
+    run, and (P,3) float directions and int64 ids would take 27 bytes a pixel (8 MB a 640x480 keyframe)."""
 
     def __init__(self, frame: RgbdFrame, device: torch.device) -> None:
         self._build(frame, device)
@@ -41,27 +43,36 @@ class FrameRays:
         self.K = frame.K
         self.T_world_camera = frame.T_world_camera
         self.shape = frame.depth_m.shape
-        T = torch.from_numpy(frame.T_world_camera).to(device, torch.float32)
+        T = torch.from_numpy(np.asarray(frame.T_world_camera)).to(device, torch.float32)
         self.origin = T[:3, 3]  # (3,)
+        self.rotation = T[:3, :3]  # (3,3) camera axes in world coordinates (columns)
         fused = kernel_module("frame_numba") if device.type == "cpu" else None
         if fused is not None:
-            valid, depth, rgb, dirs, points = fused.frame_rays(frame.depth_m, frame.rgb, frame.K, frame.T_world_camera)
-            self.valid, self.depth, self.rgb, self.dirs = (torch.from_numpy(a) for a in (valid, depth, rgb, dirs))
+            valid, depth, rgb, points = fused.frame_rays(frame.depth_m, frame.rgb, frame.K, frame.T_world_camera)
+            self.valid, self.depth, self.rgb = (torch.from_numpy(a) for a in (valid, depth, rgb))
             return points
         depth_all = torch.from_numpy(frame.depth_m).to(device, torch.float32).reshape(-1)  # (H*W,)
-        self.valid = torch.nonzero(depth_all > 0)[:, 0]  # (P,)
+        self.valid = torch.nonzero(depth_all > 0)[:, 0].to(torch.int32)  # (P,)
         self.depth = depth_all[self.valid]  # (P,)
         self.rgb = torch.from_numpy(frame.rgb.reshape(-1, 3)).to(device)[self.valid]  # (P,3) uint8
-        w = self.shape[1]
-        v = (self.valid // w).float()
-        u = (self.valid % w).float()
-        K = torch.from_numpy(np.asarray(frame.K)).to(torch.float32)
-        d_cam = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], 1)
-        self.dirs = d_cam @ T[:3, :3].T  # (P,3)
-        return (self.origin + self.dirs * self.depth[:, None]).cpu().numpy()
+        return (self.origin + self.directions(self.valid) * self.depth[:, None]).cpu().numpy()
 
     def __len__(self) -> int:
         return int(self.valid.numel())
+
+    def directions(self, pixels: torch.Tensor) -> torch.Tensor:
+        """World ray directions (N,3), z-normalised in the camera frame, of pixel ids (N,) (row-major, v * W + u)."""
+        w = self.shape[1]
+        K = np.asarray(self.K, dtype=np.float32)
+        x = ((pixels % w).float() - float(K[0, 2])) / float(K[0, 0])  # (N,)
+        y = (torch.div(pixels, w, rounding_mode="floor").float() - float(K[1, 2])) / float(K[1, 1])  # (N,)
+        R = self.rotation
+        return x[:, None] * R[:, 0] + y[:, None] * R[:, 1] + R[:, 2]
+
+    @property
+    def dirs(self) -> torch.Tensor:
+        """Directions (P,3) of every valid pixel (computed on each access)."""
+        return self.directions(self.valid)
 
     def sample(self, n: int, generator: torch.Generator) -> RayBatch:
         """n random valid-depth rays (with replacement when the frame has fewer)."""
@@ -72,14 +83,14 @@ class FrameRays:
         )
         return RayBatch(
             origins=self.origin.expand(pick.numel(), 3),
-            dirs=self.dirs[pick],
+            dirs=self.directions(self.valid[pick]),
             rgb=self.rgb[pick].float() / 255.0,
             depth=self.depth[pick],
         )
 
     def voxel_points(self, stride: int = 4) -> np.ndarray:
         """A subsample of this frame's world points (N,3) for visibility bookkeeping."""
-        pts = self.origin + self.dirs[::stride] * self.depth[::stride, None]
+        pts = self.origin + self.directions(self.valid[::stride]) * self.depth[::stride, None]
         return pts.cpu().numpy()
 
 

@@ -45,3 +45,21 @@ def test_fused_frame_rays_match_the_torch_path_and_back_projection(monkeypatch: 
     rebuilt = fast.origin + fast.dirs * fast.depth[:, None]
     np.testing.assert_allclose(rebuilt.numpy(), points, atol=2e-5)
     assert FrameRays(frame, torch.device("cpu")).valid.shape == fast.valid.shape
+
+
+def test_frame_rays_keep_11_bytes_a_pixel_and_sampled_rays_reach_their_points() -> None:
+    frame = _frame()
+    rays, points = FrameRays.with_points(frame, torch.device("cpu"))
+    kept = [getattr(rays, name) for name in vars(rays) if isinstance(getattr(rays, name), torch.Tensor)]
+    per_pixel = [t for t in kept if t.ndim and t.shape[0] == len(rays)]
+    assert sum(t.element_size() * t.numel() for t in per_pixel) == 11 * len(rays)  # id int32, depth, rgb
+    assert rays.valid.dtype == torch.int32
+    batch = rays.sample(500, torch.Generator().manual_seed(0))
+    ends = (batch.origins + batch.dirs * batch.depth[:, None]).numpy()  # (500,3)
+    # every sampled ray ends on the back-projected point of a valid pixel with the same depth and colour
+    world = backproject(frame.depth_m, frame.K, frame.T_world_camera)  # (P,3) in valid-pixel order
+    nearest = np.linalg.norm(ends[:, None] - world[None], axis=-1).argmin(1)
+    np.testing.assert_allclose(ends, world[nearest], atol=2e-5)
+    pixel = rays.valid[nearest].numpy()
+    np.testing.assert_allclose(batch.depth.numpy(), frame.depth_m.reshape(-1)[pixel])
+    np.testing.assert_allclose(batch.rgb.numpy() * 255, frame.rgb.reshape(-1, 3)[pixel], atol=1e-3)
