@@ -317,10 +317,11 @@ def render_times(worker: MappingWorker) -> list[tuple[str, float, float]]:
     return out
 
 
-def _median_max(values: list[float], scale: float = 1.0) -> str:
+def _median_p90_max(values: list[float], scale: float = 1.0) -> str:
     if not values:
         return "-"
-    return f"{scale * statistics.median(values):.0f} / {scale * max(values):.0f}"
+    p90 = statistics.quantiles(values, n=10, method="inclusive")[-1] if len(values) > 1 else values[0]
+    return f"{scale * statistics.median(values):.0f} / {scale * p90:.0f} / {scale * max(values):.0f}"
 
 
 def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], command: str) -> None:
@@ -343,9 +344,9 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
             ("kB per mesh update received", [float(b) for b in r.update_bytes], 1e-3),
             ("chunks per mesh update", [float(c) for c in r.update_chunks], 1),
         ]
-        print(f"\n| mesh streaming ({r.label}) | median / max |\n|---|---:|")
+        print(f"\n| mesh streaming ({r.label}) | median / p90 / max |\n|---|---:|")
         for name, values, scale in rows:
-            print(f"| {name} | {_median_max(values, scale)} |")
+            print(f"| {name} | {_median_p90_max(values, scale)} |")
         print(f"| mesh updates received | {len(r.update_bytes)} |")
         print(f"| chunks re-meshed by refresh passes | {r.refreshed} |")
         print(f"| mesh thread busy / mapping time | {100 * r.mesh_busy_share:.0f} % |")

@@ -419,6 +419,45 @@ def test_no_mesh_job_is_frozen_while_one_runs(make_worker: Factory) -> None:
     assert set(worker.slot.get()[1].chunks) == set(mapper.mesh_chunks())
 
 
+class StepMeshMapper(FakeMapper):
+    """Frames of 4 optimisation steps and mesh jobs that last 6 steps: a job handed over at the end of a frame
+    is still running when the next frame ends, and ends in the middle of the frame after."""
+
+    def __init__(self) -> None:
+        super().__init__(delay_s=0.04)
+        self.steps_per_frame = 4
+        self.freezes: list[tuple[int, bool]] = []  # (frames mapped, frozen between a frame's steps)
+
+    def mesh_job(self, refresh_s: float = 0.0, whole: bool = False) -> object:
+        self.freezes.append((self._version, self.in_frame))
+        job = super().mesh_job(refresh_s, whole)
+        if job is None or whole:
+            return job
+        inner_run, start = job.run, self.steps_done
+
+        def run(stop: object = None, on_pass: object = None) -> None:
+            deadline = time.monotonic() + 0.5  # the last jobs: no more steps come
+            while self.steps_done < start + 6 and time.monotonic() < deadline:
+                time.sleep(0.002)
+            inner_run(stop, on_pass)
+
+        job.run = run  # type: ignore[method-assign]
+        return job
+
+
+def test_frames_that_end_while_meshing_go_to_the_mesh_thread_as_soon_as_it_is_free(make_worker: Factory) -> None:
+    """Without the between-steps hand-over such a frame waits for the end of the next frame: up to a whole frame
+    more of mesh latency."""
+    mapper = StepMeshMapper()
+    worker = make_worker(BoxRoomSource(n=12), mapper, mesh_update_hz=50.0)
+    assert worker.wait_finished(30)
+    while_mapping = [(v, during) for v, during in mapper.freezes if v < 12]
+    handed_between_steps = [v for v, during in while_mapping if during]
+    assert len(handed_between_steps) >= 2
+    assert len(while_mapping) <= 12  # still at most one freeze of the field per frame
+    assert set(worker.slot.get()[1].chunks) == set(mapper.mesh_chunks())
+
+
 def test_each_frame_reaches_the_snapshots_through_the_mesh_thread(make_worker: Factory) -> None:
     mapper = FakeMapper(delay_s=0.1)
     worker = make_worker(BoxRoomSource(n=8), mapper, mesh_update_hz=20.0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -62,6 +63,9 @@ class Mapper:
         self.frames_done = 0
         self.version = 0
         self.max_depth_m = 0.0
+        self.on_iteration: Callable[[], None] | None = None
+        """Called on the mapping thread after every optimisation step, where the field is consistent: the
+        dashboard hands a waiting mesh update over there instead of at the end of the frame."""
 
     def _make_optimiser(self) -> GrowingAdam:
         """Adam for the growing corner priors (ours) and for hash tables and decoders (torch's fused one:
@@ -139,6 +143,8 @@ class Mapper:
             with timer("sampling"):
                 samples, batch = self._samples(frames)
             terms = self._step(samples, batch, timer)
+            if self.on_iteration is not None:
+                self.on_iteration()
             loss = float(terms["total"])
             above = above + 1 if history and loss > float(np.mean(history)) else 0
             history.append(loss)

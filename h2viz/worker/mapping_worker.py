@@ -55,6 +55,7 @@ class MappingWorker(CommandServing):
     ) -> None:
         self.source, self.mapper, self.cfg = source, mapper, cfg
         self.mapper.mesh_resolution = cfg.viewer.mesh_resolution  # the live mesh; downloads use cfg.mapping's
+        self.mapper.on_iteration = self._between_iterations
         self.settings = settings or settings_from_config(cfg)
         self.slot: LatestSlot[MapSnapshot] = LatestSlot()
         self.mapped_at: dict[int, float] = {}  # frame index -> time.time() when its mapping finished
@@ -194,6 +195,12 @@ class MappingWorker(CommandServing):
             self._submit_mesh(REFRESH_S)  # not while a job runs: freezing the field costs ~15 ms a frame
         self._resolve_steps(stats)
         self._publish()
+
+    def _between_iterations(self) -> None:
+        """(mapping thread, between optimisation steps) Frames that ended while the mesh thread was busy go to it
+        as soon as it is free, not at the end of the next frame: that wait was the tail of the mesh latency."""
+        if self._unmeshed and self.live and self._mesh_due() and not self.meshing.busy:
+            self._submit_mesh(REFRESH_S)
 
     def _on_failure(self, frame: RgbdFrame, e: Exception) -> None:
         log.exception("mapping frame %d failed", frame.index)

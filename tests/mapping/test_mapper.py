@@ -109,3 +109,13 @@ def test_render_modes_shapes() -> None:
     assert hit.mean() > 0.5
     assert np.median(n[hit][:, 2]) > 0.9  # the plane's normal is +z
     assert mapper.render(f.K, T, 24, 32, "prior").shape == (24, 32)
+
+
+def test_the_iteration_hook_runs_after_every_optimisation_step() -> None:
+    scene = Scene("plane")
+    mapper = Mapper(small_cfg(max_iters=4))
+    seen: list[int] = []
+    mapper.on_iteration = lambda: seen.append(mapper.frames_done)
+    stats = [mapper.integrate(scene.frame(i, T)) for i, T in enumerate(orbit(scene, 2, 0.6, 1.2, np.zeros(3)))]
+    assert seen == [0] * stats[0].iterations + [1] * stats[1].iterations  # during each frame, once a step
+    assert stats[0].iterations >= 1

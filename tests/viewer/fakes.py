@@ -4,7 +4,7 @@ API whose map is the union of voxels the depth hit, meshed as one cube per voxel
 from __future__ import annotations
 
 import time
-from collections.abc import Hashable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -106,6 +106,10 @@ class FakeMapper:
         self._version = 0
         self._mesh_resolution = 8
         self.rendered: list[tuple[int, int, str]] = []
+        self.steps_per_frame = 3
+        self.steps_done = 0
+        self.in_frame = False  # inside integrate(), between optimisation steps
+        self.on_iteration: Callable[[], None] | None = None
 
     @property
     def mesh_resolution(self) -> int:
@@ -119,7 +123,15 @@ class FakeMapper:
     def integrate(self, frame: RgbdFrame) -> FrameStats:
         if frame.index in self.fail_frames:
             raise RuntimeError(f"mapping frame {frame.index} failed on purpose")
-        time.sleep(self.delay_s)
+        self.in_frame = True
+        try:
+            for _ in range(self.steps_per_frame):  # the optimisation steps, the worker's hook after each
+                time.sleep(self.delay_s / self.steps_per_frame)
+                self.steps_done += 1
+                if self.on_iteration is not None:
+                    self.on_iteration()
+        finally:
+            self.in_frame = False
         self._version += 1
         v, u = np.nonzero(frame.depth_m[::2, ::2] > 0)
         z = frame.depth_m[::2, ::2][v, u]
@@ -133,7 +145,8 @@ class FakeMapper:
         self._update_keyframes(frame)
         n = self._version
         losses = {"rgb": 0.5 / n, "depth": 1.0 / n, "sdf": 0.1 / n**0.5}
-        return FrameStats(frame.index, self.delay_s, 3, len(self._voxels), len(self._keyframes), losses)
+        n_voxels, n_keyframes = len(self._voxels), len(self._keyframes)
+        return FrameStats(frame.index, self.delay_s, self.steps_per_frame, n_voxels, n_keyframes, losses)
 
     def _update_keyframes(self, frame: RgbdFrame) -> None:
         if frame.index % 4 == 0:
