@@ -203,6 +203,10 @@ class MappingConfig:
     distances from their surface (0 = off; no effect with priors off): the residual may move the surface that far
     only within the band. Behind observed surfaces and in free space nothing constrains the residual, and hash
     collisions there would leave spurious sheets 5-10 cm from the surface."""
+    mesh_observed_only: bool = True
+    """Meshing leaves out faces with no measured depth within about 1-4 cm (no observed voxel/8 cell in the 3x3x3
+    cells around them): behind observed surfaces and in gaps nobody saw into, priors and residual can close the
+    gap with surfaces 3-7 cm in front of the true ones (false = mesh every zero crossing, as the paper)."""
     chunk_voxels: int = 8
     """Leaf voxels per mesh-chunk edge (chunks are re-meshed only when touched)."""
     mesh_every: int = 0

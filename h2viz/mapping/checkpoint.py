@@ -49,6 +49,7 @@ def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = N
         "config": dataclasses.asdict(mapper.cfg),
         "octree": mapper.octree.state_dict(),
         "priors_init": mapper.priors.state_dict(),
+        "observed": mapper.observed.state_dict(),
         "priors": mapper.field.priors.detach().cpu(),
         "field": {k: v.cpu() for k, v in mapper.field.state_dict().items()},
         "optim": mapper.optim.state_dict(),
@@ -111,6 +112,11 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
     mapper.net_optim.load_state_dict(state["net_optim"])
     mapper.keyframes.load_state_dict(state["keyframes"])
     mapper.keyframe_rays = [_keyframe_from_record(r, mapper.device) for r in state["keyframe_frames"]]
+    if "observed" in state:
+        mapper.observed.load_state_dict(state["observed"])
+    else:  # saved before observed cells were kept: rebuild them from the keyframes' depth
+        for rays in mapper.keyframe_rays:
+            mapper.observed.add(mapper.octree, rays.voxel_points(1))
     mapper.thumbnails = list(state["thumbnails"])
     mapper.trajectory = list(state["trajectory"])
     mapper.frames_done = int(state["frames_done"])

@@ -25,8 +25,13 @@ from h2viz.mapping.raycast import RenderParams, locate, render_image
 from h2viz.mapping.rays import FrameRays, RayBatch
 from h2viz.mapping.rendering import composite, live_samples, render_weights
 from h2viz.mapping.sampling import BandLayout, Samples, band_samples, sample_rays
+from h2viz.mapping.support import ObservedCells
 from h2viz.timing import StageTimer
 from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
+
+OBSERVED_POINTS = 60_000
+"""Depth points a frame marks observed cells with (every k-th valid one): a fifth of a 640x480 frame, which at
+70 deg stays about as dense as the 1.25 cm cells up to 3 m away, for ~3 ms a frame instead of ~15."""
 
 
 def pick_device(name: str) -> torch.device:
@@ -49,6 +54,7 @@ class Mapper:
         self.voxel_size_m = cfg.voxel_size_m
         self.octree = VoxelOctree(cfg.voxel_size_m, cfg.min_points_per_voxel, cfg.expansion)
         self.priors = PriorInitializer(cfg.truncation_m, cfg.priors)
+        self.observed = ObservedCells(cfg.voxel_size_m)  # where depth was measured, for meshing
         self.field = HybridField(cfg).to(self.device)
         self.field.priors = self.field.priors.to(self.device).requires_grad_(cfg.priors)
         self.optim = self._make_optimiser()
@@ -90,6 +96,7 @@ class Mapper:
             alloc = self.octree.allocate(points)  # voxels with > 10 points (+ expanded neighbours)
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
             self._init_priors(frame)  # project new corners into the depth image
+            self.observed.add(self.octree, points[:: max(1, len(points) // OBSERVED_POINTS)])  # for meshing
         with timer("keyframes"):
             if self.keyframes.should_insert(frame.index, alloc.observed):  # IoU / max-gap rule
                 self._add_keyframe(frame, rays, alloc.observed)
@@ -244,7 +251,10 @@ class Mapper:
         band = self.cfg.mesh_prior_band if self.cfg.priors else 0.0
         field = FrozenField(self.field, self.cfg.truncation_m, band)
         coords = self.octree.voxel_coords()[meshable]
-        return MeshJob(mesher, coords, meshable, dirty, field, self.version, self.frames_done, refresh_s, whole)
+        support = self.observed.snapshot(self.octree) if self.cfg.mesh_observed_only else None
+        return MeshJob(
+            mesher, coords, meshable, dirty, field, self.version, self.frames_done, refresh_s, whole, support
+        )
 
     def update_mesh(self) -> None:
         """Re-mesh every chunk from the field now, on this thread, when anything changed since the last time."""

@@ -18,6 +18,7 @@ from h2viz.mapping.decoder_numba import decode_range, decoder_weights, is_suppor
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.meshing import ChunkedMesher, ChunkKey
 from h2viz.mapping.prior_numba import blend_range
+from h2viz.mapping.support import ObservedSupport
 from h2viz.types import MeshChunk
 
 FIELD_BATCH = 1 << 16  # points per network call (the activations stay in cache)
@@ -106,6 +107,7 @@ class MeshJob:
     field_version: int  # frames integrated into the frozen field
     refresh_s: float  # then refresh dirty voxels and the stalest chunks for up to this long
     whole: bool = False  # re-evaluate every chunk from this field (one consistent mesh, e.g. for export)
+    support: ObservedSupport | None = None  # faces away from observed depth are left out (None: all kept)
 
     def run(
         self, stop: Callable[[], bool] | None = None, on_pass: Callable[[list[ChunkKey], bool], None] | None = None
@@ -124,6 +126,7 @@ class MeshJob:
             refresh_s=self.refresh_s,
             stop=stop,
             on_pass=on_pass,
+            keep_fn=None if self.support is None else self.support.contains,
         )
 
     def after(self, older: MeshJob) -> MeshJob:

@@ -4,7 +4,7 @@ to evaluate) cut into passes, and the coloured surface of a chunk's lattice valu
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from enum import Enum
 
@@ -15,6 +15,8 @@ from h2viz.mapping.marching import ChunkLattice, march, weld, world_vertices
 from h2viz.types import MeshChunk
 
 ChunkKey = tuple[int, int, int]
+KeepFn = Callable[[np.ndarray], np.ndarray]
+"""Points (N,3) -> (N,) bool: faces whose centroid it rejects are left out of the mesh."""
 POINTS_PER_PASS = 1 << 17  # lattice points evaluated together: the granularity of progress
 REFRESH_POINTS_PER_PASS = 1 << 15  # the same for optional refresh work: the granularity of its time budget
 
@@ -78,9 +80,10 @@ class Update:
         color_fn: ColorFn,
         version: int,
         field_version: int,
+        keep_fn: KeepFn | None = None,
     ) -> None:
         self.groups, self.resolution = groups, resolution
-        self.sdf_fn, self.color_fn = sdf_fn, color_fn
+        self.sdf_fn, self.color_fn, self.keep_fn = sdf_fn, color_fn, keep_fn
         self.version, self.field_version = version, field_version
         coords = np.concatenate([g.coords for g in groups.values()]) if groups else np.zeros((1, 3), np.int64)
         self.faces = FaceValues(coords.min(axis=0) * resolution, (coords.max(axis=0) + 1) * resolution)
@@ -114,6 +117,22 @@ def surface(lat: ChunkLattice, values: np.ndarray, spacing_m: float) -> tuple[Ch
     verts, faces, volume = marched
     vertices, faces, _ = weld(world_vertices(verts, volume, lat.origin, spacing_m), faces)
     return (lat.key, vertices, faces) if len(faces) else None
+
+
+def kept_faces(
+    surface: tuple[ChunkKey, np.ndarray, np.ndarray], keep_fn: KeepFn
+) -> tuple[ChunkKey, np.ndarray, np.ndarray] | None:
+    """The surface without the faces whose centroid `keep_fn` rejects (and without the vertices only they used),
+    or None when no face is left."""
+    key, vertices, faces = surface
+    keep = np.asarray(keep_fn(vertices[faces].mean(axis=1)), dtype=bool)  # (M,)
+    if keep.all():
+        return surface
+    faces = faces[keep]
+    if len(faces) == 0:
+        return None
+    used, inverse = np.unique(faces, return_inverse=True)
+    return key, vertices[used], inverse.reshape(faces.shape).astype(faces.dtype)
 
 
 def coloured(

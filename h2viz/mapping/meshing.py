@@ -24,7 +24,19 @@ from h2viz.errors import ConfigError
 from h2viz.mapping.chunk_values import ChunkValues
 from h2viz.mapping.lattice_values import ColorFn, MeshingError, SdfFn, sample_lattices
 from h2viz.mapping.marching import ChunkLattice, chunk_lattice, weld
-from h2viz.mapping.mesh_passes import NEVER, ChunkKey, Eval, Item, Meshed, Update, coloured, group_voxels, surface
+from h2viz.mapping.mesh_passes import (
+    NEVER,
+    ChunkKey,
+    Eval,
+    Item,
+    KeepFn,
+    Meshed,
+    Update,
+    coloured,
+    group_voxels,
+    kept_faces,
+    surface,
+)
 from h2viz.types import MeshChunk
 
 __all__ = ["ChunkKey", "ChunkedMesher", "ColorFn", "MeshingError", "SdfFn", "export_mesh", "merge_chunks"]
@@ -125,6 +137,7 @@ class ChunkedMesher:
         refresh_s: float = 0.0,
         stop: Callable[[], bool] | None = None,
         on_pass: Callable[[list[ChunkKey], bool], None] | None = None,
+        keep_fn: KeepFn | None = None,
     ) -> dict[ChunkKey, MeshChunk]:
         """Mesh the voxels (V,3); returns every non-empty chunk (those not re-meshed are the same objects).
 
@@ -136,7 +149,8 @@ class ChunkedMesher:
         stale next time).
 
         `voxel_ids` (V,) are what sdf_fn receives with the points (default: row numbers); `on_pass(keys,
-        required)` runs after each pass of chunks has been swapped in.
+        required)` runs after each pass of chunks has been swapped in; `keep_fn` (face centroids (M,3) -> (M,)
+        bool) leaves the faces it rejects out of the re-meshed chunks.
         """
         coords = _as_voxels(voxel_coords)
         ids = np.arange(len(coords), dtype=np.int64) if voxel_ids is None else np.asarray(voxel_ids, np.int64)
@@ -144,7 +158,7 @@ class ChunkedMesher:
         if ids.shape != (len(coords),) or flags.shape != (len(coords),):
             raise MeshingError(f"meshing: voxel_ids and dirty_voxels must have shape ({len(coords)},)")
         groups = group_voxels(coords, ids, flags, self._chunk_voxels)
-        job = Update(groups, self._resolution, sdf_fn, color_fn, version, field_version)
+        job = Update(groups, self._resolution, sdf_fn, color_fn, version, field_version, keep_fn)
         self._forget(set(groups))
         required = self._required(job, dirty)
         self.remeshed = []
@@ -205,6 +219,8 @@ class ChunkedMesher:
         outside = lambda points: self._held_by_others(points, set(keys), chunk_cells)  # noqa: E731
         values = sample_lattices(lattices, ids, need, caches, spacing_m, job.sdf_fn, chunk_cells, job.faces, outside)
         surfaces = [s for lat, v in zip(lattices, values, strict=True) if (s := surface(lat, v, spacing_m))]
+        if job.keep_fn is not None:
+            surfaces = [s for surf in surfaces if (s := kept_faces(surf, job.keep_fn))]
         chunks = {k: c for k, c in self._chunks.items() if k not in set(keys)}
         keep = {k: self._chunks[k] for k, mode in items if mode is not Eval.WHOLE and k in self._chunks}
         chunks.update(coloured(surfaces, job.color_fn, job.version, keep))  # unmoved vertices keep their colour

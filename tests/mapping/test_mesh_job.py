@@ -10,8 +10,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from h2viz.config import MappingConfig
+from h2viz.geometry import backproject
 from h2viz.mapping.mapper import Mapper
 from h2viz.mapping.mesh_job import FrozenField, keep_prior_sign
 from h2viz.mapping.meshing import ChunkedMesher, merge_chunks
@@ -93,7 +95,10 @@ def test_jobs_on_another_thread_then_a_full_refresh_equal_a_fresh_mesh() -> None
     meshable = np.flatnonzero(mapper.priors.initialised(mapper.octree.n_voxels))
     fresh_mesher = ChunkedMesher(mapper.voxel_size_m, mapper.cfg.mesh_resolution, mapper.cfg.chunk_voxels)
     coords = mapper.octree.voxel_coords()[meshable]
-    fresh = merge_chunks(fresh_mesher.update(coords, None, frozen.sdf_m, frozen.color_u8, 1, voxel_ids=meshable))
+    keep = mapper.observed.snapshot(mapper.octree).contains  # faces near measured depth, as the mapper's jobs
+    fresh = merge_chunks(
+        fresh_mesher.update(coords, None, frozen.sdf_m, frozen.color_u8, 1, voxel_ids=meshable, keep_fn=keep)
+    )
     order = lambda m: np.lexsort(np.asarray(m.vertices).T[::-1])  # noqa: E731
     np.testing.assert_array_equal(np.asarray(mesh.vertices)[order(mesh)], np.asarray(fresh.vertices)[order(fresh)])
     np.testing.assert_array_equal(mesh.visual.vertex_colors[order(mesh)], fresh.visual.vertex_colors[order(fresh)])
@@ -112,6 +117,27 @@ def test_a_job_replacing_a_waiting_one_keeps_its_dirty_voxels() -> None:
     assert set(merged.voxel_ids[merged.dirty_voxels]) == had
     assert merged.field is newer.field and merged.version == newer.version
     assert replace(merged, refresh_s=0.0).refresh_s == 0.0
+
+
+def test_surfaces_away_from_measured_depth_are_left_out_of_the_mesh() -> None:
+    mapper, scene, poses = sphere_mapper(2)
+    seen = np.concatenate([_points(scene, i, T) for i, T in enumerate(poses[:2])])  # (N,3) measured depth
+    on_depth = mapper.mesh()
+    assert np.median(np.abs(scene.sdf(np.asarray(on_depth.vertices)))) < 0.005
+    shift_residual(mapper, 1.2)  # 6 cm from every depth point measured: beyond the cells around observed ones
+    moved = mapper.mesh()
+    assert len(moved.faces) < 0.1 * len(on_depth.faces)
+    if len(moved.faces):
+        gap, _ = cKDTree(seen).query(moved.triangles_center)
+        assert gap.max() < 2 * np.sqrt(3) * mapper.cfg.voxel_size_m / 8  # within the 3x3x3 cells of an observed one
+    mapper.cfg.mesh_observed_only = False
+    mapper.touched[:] = True
+    assert len(mapper.mesh().faces) > 0.5 * len(on_depth.faces)  # the same surface, kept when the filter is off
+
+
+def _points(scene: Scene, i: int, T: np.ndarray) -> np.ndarray:
+    f = scene.frame(i, T)
+    return backproject(f.depth_m, f.K, f.T_world_camera)
 
 
 def crossings(values: np.ndarray) -> np.ndarray:
@@ -134,16 +160,21 @@ def test_meshing_keeps_the_prior_sign_beyond_the_band() -> None:
     np.testing.assert_array_equal(keep_prior_sign(bubble, prior, 10.0), bubble)  # a wide band changes nothing
 
 
-def test_mesh_jobs_use_the_configured_band_and_moved_surfaces_within_it_are_meshed() -> None:
-    mapper, scene, _ = sphere_mapper(2)
-    job = mapper.mesh_job()
-    assert job is not None and job.field.prior_band == mapper.cfg.mesh_prior_band == 1.5
-    with torch.no_grad():  # a residual of +0.8 tr everywhere: the surface moves 4 cm into the sphere
+def shift_residual(mapper: Mapper, tr_units: float) -> None:
+    """Make the residual the same everywhere: the surface moves that far (truncation units) into the sphere."""
+    with torch.no_grad():
         last = mapper.field.geo_mlp[-1]
         last.weight.zero_()
         b = mapper.cfg.residual_bound
-        last.bias.fill_(float(b * np.arctanh(0.8 / b)))
+        last.bias.fill_(float(b * np.arctanh(tr_units / b)))
     mapper.touched[:] = True
+
+
+def test_mesh_jobs_use_the_configured_band_and_moved_surfaces_within_it_are_meshed() -> None:
+    mapper, scene, _ = sphere_mapper(2, mesh_observed_only=False)  # 4 cm from the depth: not observed cells
+    job = mapper.mesh_job()
+    assert job is not None and job.field.prior_band == mapper.cfg.mesh_prior_band == 1.5
+    shift_residual(mapper, 0.8)  # 4 cm into the sphere
     mesh = mapper.mesh()
     inside = np.median(scene.sdf(np.asarray(mesh.vertices)))
     assert abs(inside + 0.8 * mapper.cfg.truncation_m) < 0.01, inside
