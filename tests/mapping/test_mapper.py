@@ -91,6 +91,7 @@ def test_checkpoint_round_trip_reproduces_renders_and_continues(tmp_path: Path) 
     b = again.render(f.K, f.T_world_camera, f.height, f.width, "depth")
     np.testing.assert_allclose(a, b, atol=1e-6)
     assert again.octree.n_voxels == mapper.octree.n_voxels and len(again.keyframes) == len(mapper.keyframes)
+    np.testing.assert_array_equal(again.observed.words, mapper.observed.words)  # meshing's observed cells
     s1 = mapper.integrate(scene.frame(4, poses[4]))
     s2 = again.integrate(scene.frame(4, poses[4]))
     assert s1.n_voxels == s2.n_voxels and s1.iterations == s2.iterations
