@@ -120,3 +120,18 @@ def test_the_iteration_hook_runs_after_every_optimisation_step() -> None:
     stats = [mapper.integrate(scene.frame(i, T)) for i, T in enumerate(orbit(scene, 2, 0.6, 1.2, np.zeros(3)))]
     assert seen == [0] * stats[0].iterations + [1] * stats[1].iterations  # during each frame, once a step
     assert stats[0].iterations >= 1
+
+
+def test_a_checkpoint_without_observed_cells_rebuilds_them_from_its_keyframes(tmp_path: Path) -> None:
+    scene = Scene("sphere", radius=0.4)
+    mapper = Mapper(small_cfg(max_iters=2))
+    for i, T in enumerate(orbit(scene, 6, 1.4, 0.4, scene.center)[:3]):
+        mapper.integrate(scene.frame(i, T))
+    save_checkpoint(mapper, tmp_path / "ck.pt")
+    state = torch.load(tmp_path / "ck.pt", weights_only=False)
+    del state["observed"]  # as saved before meshing kept observed cells
+    torch.save(state, tmp_path / "old.pt")
+    again, _ = load_checkpoint(tmp_path / "old.pt")
+    bits = lambda m: int(np.unpackbits(m.observed.words.view(np.uint8)).sum())  # noqa: E731
+    assert bits(again) > 0.5 * bits(mapper)  # the keyframes' depth (every point of it) marks most cells again
+    assert len(again.mesh().faces) > 0.8 * len(mapper.mesh().faces)
