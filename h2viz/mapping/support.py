@@ -58,9 +58,10 @@ class ObservedCells:
         np.bitwise_or.at(self.words, (vid[ok], word), bit)
 
     def snapshot(self, octree: VoxelOctree) -> ObservedSupport:
-        """What meshing needs to test faces, frozen now (the dilation itself runs when first tested)."""
+        """What meshing needs to test faces, frozen now: the voxel keys and the cell bits (the lookup index and
+        the dilation are built on the thread that first tests a face)."""
         self.grow(octree.n_voxels)
-        return ObservedSupport(self.cell_m, octree.voxels, self.words.copy())
+        return ObservedSupport(self.cell_m, octree.voxels.keys[: octree.n_voxels], self.words.copy())
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"words": self.words}
@@ -71,37 +72,42 @@ class ObservedCells:
 
 @dataclass
 class ObservedSupport:
-    """Observed cells frozen for one mesh job (`index` is the octree's voxel index at that moment: its arrays are
-    replaced, never changed in place, when voxels are added)."""
+    """Observed cells frozen for one mesh job: voxel keys in id order (the octree replaces its key array when it
+    grows, never changes it in place) and their cell bits."""
 
     cell_m: float
-    index: KeyIndex
+    keys: np.ndarray  # (V,) int64
     words: np.ndarray  # (V,8) uint64
+    _index: KeyIndex | None = None
     _dilated: np.ndarray | None = None
+
+    @property
+    def index(self) -> KeyIndex:
+        if self._index is None:
+            self._index = KeyIndex.from_keys(self.keys)
+        return self._index
 
     def dilated(self) -> np.ndarray:
         """(V,8) words with every cell that has an observed cell among its 26 neighbours (or itself) set."""
         if self._dilated is None:
-            self._dilated = dilate(self.words, neighbours(self.index, len(self.words)))
+            self._dilated = dilate(self.words, neighbours(self.index))
         return self._dilated
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: points (N,3) whose cell is within one cell of an observed cell."""
         cells = np.floor(np.asarray(points) / self.cell_m).astype(np.int64)  # (N,3)
         vid = self.index.lookup(encode(cells >> 3))
-        ok = (vid >= 0) & (vid < len(self.words))
+        ok = vid >= 0
         word, bit = _cell_bits(cells[ok] & (SUB - 1))
         out = np.zeros(len(cells), dtype=bool)
         out[ok] = (self.dilated()[vid[ok], word] & bit) != 0
         return out
 
 
-def neighbours(index: KeyIndex, n_voxels: int) -> np.ndarray:
+def neighbours(index: KeyIndex) -> np.ndarray:
     """(V,6) ids of each voxel's face neighbours in FACE_DIRS order (-x, +x, -y, +y, -z, +z), -1 where none."""
-    coords = decode(index.keys[:n_voxels])  # (V,3)
-    out = np.stack([index.lookup(encode(coords + d)) for d in FACE_DIRS], axis=1)
-    out[out >= n_voxels] = -1
-    return out
+    coords = decode(index.keys)  # (V,3)
+    return np.stack([index.lookup(encode(coords + d)) for d in FACE_DIRS], axis=1)
 
 
 def _gather(words: np.ndarray, ids: np.ndarray) -> np.ndarray:
