@@ -211,6 +211,13 @@ def test_settings_apply_live_and_resolution_remeshes(make_worker: Factory) -> No
     with pytest.raises(H2vizError, match="stride must be"):
         worker.submit("set", stride=0).result(5)
     assert worker.settings.stride == 3
+    before = after
+    reply = worker.submit("set", mesh_observed_only=False).result(5)
+    assert reply["mesh_observed_only"] is False and mapper.mesh_observed_only is False
+    wait_for(worker, lambda s: all(s.chunks[k] is not before[k] for k in before))  # every chunk re-meshed
+    with pytest.raises(H2vizError, match="must be true or false"):
+        worker.submit("set", mesh_observed_only="no").result(5)
+    assert mapper.mesh_observed_only is False
 
 
 def test_mapping_failures_are_reported_and_pause_after_three_in_a_row(make_worker: Factory) -> None:

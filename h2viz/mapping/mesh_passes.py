@@ -89,7 +89,9 @@ class Update:
         self.faces = FaceValues(coords.min(axis=0) * resolution, (coords.max(axis=0) + 1) * resolution)
 
     def signature(self, key: ChunkKey) -> bytes:
-        return self.resolution.to_bytes(4, "little") + self.groups[key].coords.tobytes()
+        """Resolution, voxel set and whether faces are filtered: a chunk meshed under another one is re-meshed."""
+        filtered = b"" if self.keep_fn is None else b"kept"
+        return self.resolution.to_bytes(4, "little") + self.groups[key].coords.tobytes() + filtered
 
     def passes(self, items: list[Item], refresh: bool = False) -> Iterator[list[Item]]:
         """Items in passes of about POINTS_PER_PASS (REFRESH_POINTS_PER_PASS for `refresh` work) evaluated

@@ -133,8 +133,14 @@ class Panels:
                 hint=f"0: no live mesh, re-meshed every {s.mesh_every} frames instead",
             )
             res = gui.add_slider("Marching cubes res.", 2, 16, 1, int(self.cfg.viewer.mesh_resolution))
+            observed = gui.add_checkbox(
+                "Observed surfaces only",
+                bool(self.cfg.mapping.mesh_observed_only),
+                hint="Mesh only within a few cm of measured depth; off: every zero crossing of the field",
+            )
         rate.on_update(lambda e: self._command(e, "set", mesh_update_hz=float(rate.value)))
         res.on_update(lambda e: self._command(e, "set", mesh_resolution=int(res.value)))
+        observed.on_update(lambda e: self._command(e, "set", mesh_observed_only=bool(observed.value)))
 
     # -- actions (run on viser's thread pool) --------------------------------------------------
     def _command(self, event: Any, kind: str, **args: Any) -> Any:

@@ -120,28 +120,35 @@ def save_checkpoint(mapper: Mapper, path: str | Path) -> str:
     return str(path)
 
 
+MAPPER_SETTINGS = {"mesh_resolution": int, "mesh_observed_only": bool}
+"""Settings that live on the mapper (the live mesh's resolution and face filter); changing one re-meshes."""
+
+
 def apply_settings(settings: WorkerSettings, mapper: Mapper, args: dict[str, Any]) -> bool:
-    """Write `args` into `settings` (and mesh_resolution into the mapper); True when the mesh
-    must be re-extracted. Unknown keys or bad values raise H2vizError before anything changes."""
-    types = {f.name: type(getattr(settings, f.name)) for f in fields(settings)}
-    valid = sorted([*types, "mesh_resolution"])
+    """Write `args` into `settings` (and MAPPER_SETTINGS into the mapper); True when the mesh must be
+    re-extracted. Unknown keys or bad values raise H2vizError before anything changes."""
+    types: dict[str, type] = {f.name: type(getattr(settings, f.name)) for f in fields(settings)}
+    types.update(MAPPER_SETTINGS)
     for key in args:
-        if key not in valid:
-            raise H2vizError(f"set: unknown setting '{key}'; valid settings: {', '.join(valid)}")
+        if key not in types:
+            raise H2vizError(f"set: unknown setting '{key}'; valid settings: {', '.join(sorted(types))}")
+    if any(types[k] is bool and not isinstance(v, bool) for k, v in args.items()):
+        raise H2vizError(f"set: {', '.join(k for k in args if types[k] is bool)} must be true or false, got {args}")
     try:
-        values = {k: (int(v) if k == "mesh_resolution" else types[k](v)) for k, v in args.items()}
+        values = {k: types[k](v) for k, v in args.items()}
     except (TypeError, ValueError) as e:
         raise H2vizError(f"set: bad value in {args} ({e})") from e
     if values.get("stride", 1) < 1 or values.get("mesh_resolution", 2) < 2:
         raise H2vizError(f"set: stride must be >= 1 and mesh_resolution >= 2, got {args}")
-    remesh = "mesh_resolution" in values and values["mesh_resolution"] != mapper.mesh_resolution
+    remesh = False
     for key, value in values.items():
-        if key == "mesh_resolution":
-            mapper.mesh_resolution = value
+        if key in MAPPER_SETTINGS:
+            remesh |= value != getattr(mapper, key)
+            setattr(mapper, key, value)
         else:
             setattr(settings, key, value)
     return remesh
 
 
 def settings_reply(settings: WorkerSettings, mapper: Mapper) -> dict[str, Any]:
-    return {**asdict(settings), "mesh_resolution": int(mapper.mesh_resolution)}
+    return {**asdict(settings), **{k: t(getattr(mapper, k)) for k, t in MAPPER_SETTINGS.items()}}

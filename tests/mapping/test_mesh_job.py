@@ -130,8 +130,7 @@ def test_surfaces_away_from_measured_depth_are_left_out_of_the_mesh() -> None:
     if len(moved.faces):
         gap, _ = cKDTree(seen).query(moved.triangles_center)
         assert gap.max() < 2 * np.sqrt(3) * mapper.cfg.voxel_size_m / 8  # within the 3x3x3 cells of an observed one
-    mapper.cfg.mesh_observed_only = False
-    mapper.touched[:] = True
+    mapper.mesh_observed_only = False  # nothing else changed: the toggle alone re-meshes every chunk
     assert len(mapper.mesh().faces) > 0.5 * len(on_depth.faces)  # the same surface, kept when the filter is off
 
 

@@ -105,6 +105,7 @@ class FakeMapper:
         self._keyframes: list[KeyframeInfo] = []
         self._version = 0
         self._mesh_resolution = 8
+        self._observed_only = True
         self.rendered: list[tuple[int, int, str]] = []
         self.steps_per_frame = 3
         self.steps_done = 0
@@ -118,6 +119,15 @@ class FakeMapper:
     @mesh_resolution.setter
     def mesh_resolution(self, value: int) -> None:
         self._mesh_resolution = int(value)
+        self._dirty |= set(self._chunks)
+
+    @property
+    def mesh_observed_only(self) -> bool:
+        return self._observed_only
+
+    @mesh_observed_only.setter
+    def mesh_observed_only(self, value: bool) -> None:
+        self._observed_only = bool(value)
         self._dirty |= set(self._chunks)
 
     def integrate(self, frame: RgbdFrame) -> FrameStats:
