@@ -33,6 +33,20 @@ def _cell_bits(local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return local[:, 0], np.left_shift(_ONE, (local[:, 1] * 8 + local[:, 2]).astype(np.uint64))
 
 
+def _distinct(cells: np.ndarray) -> np.ndarray:
+    """The distinct rows of integer cells (N,3), through one sort of their index in the cells' bounding box
+    (np.unique hashes and takes 6x longer; a key of the absolute coordinates would wrap far from the origin)."""
+    cols = np.ascontiguousarray(cells.T)  # (3,N): reductions over the columns of (N,3) are slow
+    lo = cols.min(axis=1)  # (3,)
+    x, y, z = cols - lo[:, None]
+    ny, nz = int(y.max()) + 1, int(z.max()) + 1
+    flat = np.sort((x * ny + y) * nz + z)
+    flat = flat[np.r_[True, flat[1:] != flat[:-1]]]
+    out = np.empty((flat.size, 3), np.int64)
+    out[:, 0], out[:, 1], out[:, 2] = flat // (ny * nz), flat // nz % ny, flat % nz
+    return out + lo
+
+
 class ObservedCells:
     """The observed-cell bits of every leaf voxel (8 uint64 words each), growing with the octree."""
 
@@ -50,8 +64,7 @@ class ObservedCells:
         if len(points) == 0:
             return
         self.grow(octree.n_voxels)
-        keys = np.sort(encode(np.floor(points / self.cell_m).astype(np.int64)))  # (N,)
-        cells = decode(keys[np.r_[True, keys[1:] != keys[:-1]]])  # (M,3) distinct (np.unique hashes: 6x slower)
+        cells = _distinct(np.floor(points / self.cell_m).astype(np.int64))  # (M,3)
         vid = octree.voxels.lookup(encode(cells >> 3))  # arithmetic shift: floor division by SUB
         ok = vid >= 0
         word, bit = _cell_bits(cells[ok] & (SUB - 1))

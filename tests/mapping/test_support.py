@@ -100,3 +100,17 @@ def test_meshing_keeps_only_the_surface_near_observed_depth() -> None:
     np.testing.assert_allclose(z_near, 0.022, atol=1e-3)  # only the observed plane is left
     assert abs(near.area - both.area / 2) < 0.01 * both.area
     assert len(np.unique(near.faces)) == len(near.vertices)  # no vertex left without a face
+
+
+def test_cells_far_from_the_origin_are_marked_as_near_it() -> None:
+    """20 km out (UTM-like poses): cell coordinates pass 2^20, where a packed key of them would wrap."""
+    rng = np.random.default_rng(7)
+    for origin in (np.zeros(3), np.array([20_000.0, -15_000.0, 3.0])):
+        octree = VoxelOctree(VS, min_points=0, expansion=False)
+        points = origin + rng.uniform(0.0, 0.3, size=(500, 3))
+        octree.allocate(points)
+        observed = ObservedCells(VS)
+        observed.add(octree, points)
+        support = observed.snapshot(octree)
+        assert support.contains(points).all()
+        assert not support.contains(points + np.array([0.0, 0.0, 0.35])).any()  # above every allocated voxel
