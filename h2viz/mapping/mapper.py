@@ -69,7 +69,6 @@ class Mapper:
         self.frames_done = 0
         self.version = 0
         self.max_depth_m = 0.0
-        self._filter_changed = False  # mesh_observed_only changed since the last mesh job
         self.on_iteration: Callable[[], None] | None = None
         """Called on the mapping thread after every optimisation step, where the field is consistent: the
         dashboard hands a waiting mesh update over there instead of at the end of the frame."""
@@ -231,7 +230,6 @@ class Mapper:
 
     @mesh_observed_only.setter
     def mesh_observed_only(self, value: bool) -> None:
-        self._filter_changed |= bool(value) != self.cfg.mesh_observed_only
         self.cfg.mesh_observed_only = bool(value)
 
     @property
@@ -249,12 +247,11 @@ class Mapper:
         everything was last meshed. Only voxels whose priors are initialised are meshed: a voxel at the edge
         of the view would otherwise close the surface with a skirt where its unobserved corners meet observed
         ones."""
-        if not self.touched.any() and self.mesher.stale(self.frames_done) == 0 and not self._filter_changed:
+        if not self.touched.any() and self.mesher.stale(self.frames_done, self.cfg.mesh_observed_only) == 0:
             return None
         self.version += 1
         job = self._frozen_job(self.mesher, refresh_s, whole)
         self.touched[:] = False
-        self._filter_changed = False
         return job
 
     def _frozen_job(self, mesher: ChunkedMesher, refresh_s: float, whole: bool) -> MeshJob:

@@ -32,6 +32,12 @@ class Eval(Enum):
 Item = tuple[ChunkKey, Eval]
 
 
+def signature_head(resolution: int, filtered: bool) -> bytes:
+    """The first bytes of a chunk signature: resolution (4 bytes, what a chunk's value cache depends on), then
+    whether faces went through a keep_fn (1 byte)."""
+    return resolution.to_bytes(4, "little") + (b"\x01" if filtered else b"\x00")
+
+
 @dataclass(frozen=True)
 class Meshed:
     """What a chunk was last meshed from."""
@@ -89,9 +95,8 @@ class Update:
         self.faces = FaceValues(coords.min(axis=0) * resolution, (coords.max(axis=0) + 1) * resolution)
 
     def signature(self, key: ChunkKey) -> bytes:
-        """Resolution, voxel set and whether faces are filtered: a chunk meshed under another one is re-meshed."""
-        filtered = b"" if self.keep_fn is None else b"kept"
-        return self.resolution.to_bytes(4, "little") + self.groups[key].coords.tobytes() + filtered
+        """Resolution, whether faces are filtered, and voxel set: a chunk meshed under others is re-meshed."""
+        return signature_head(self.resolution, self.keep_fn is not None) + self.groups[key].coords.tobytes()
 
     def passes(self, items: list[Item], refresh: bool = False) -> Iterator[list[Item]]:
         """Items in passes of about POINTS_PER_PASS (REFRESH_POINTS_PER_PASS for `refresh` work) evaluated

@@ -35,6 +35,7 @@ from h2viz.mapping.mesh_passes import (
     coloured,
     group_voxels,
     kept_faces,
+    signature_head,
     surface,
 )
 from h2viz.types import MeshChunk
@@ -105,11 +106,11 @@ class ChunkedMesher:
         """Memory held by the lattice value caches."""
         return sum(v.nbytes for v in list(self._values.values()))
 
-    def stale(self, field_version: int) -> int:
-        """How many chunks were evaluated whole from a field older than `field_version` or at another
-        resolution."""
-        res = self._resolution.to_bytes(4, "little")
-        return sum(m.field_version < field_version or m.signature[:4] != res for m in self._meshed.values())
+    def stale(self, field_version: int, filtered: bool | None = None) -> int:
+        """How many chunks were evaluated whole from a field older than `field_version`, or meshed at another
+        resolution or (unless `filtered` is None) with faces filtered otherwise than `filtered` says."""
+        head = signature_head(self._resolution, bool(filtered))[: 4 if filtered is None else None]
+        return sum(m.field_version < field_version or m.signature[: len(head)] != head for m in self._meshed.values())
 
     def chunks_of(self, voxel_coords: np.ndarray, halo: bool = False) -> set[ChunkKey]:
         """Chunk keys floor(coord / chunk_voxels) of voxels (V,3).
