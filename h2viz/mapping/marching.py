@@ -80,6 +80,15 @@ def pack_rows(rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | 
     return (d[:, 0] * span[1] + d[:, 1]) * span[2] + d[:, 2]
 
 
+def unpack_rows(keys: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The integer rows (N,3) int64 of keys (N,) made by `pack_rows` with the same box."""
+    lo = np.asarray(lo, dtype=np.int64)
+    span = np.asarray(hi, dtype=np.int64) - lo + 1
+    out = np.empty((len(keys), 3), np.int64)
+    out[:, 0], out[:, 1], out[:, 2] = keys // (span[1] * span[2]), keys // span[2] % span[1], keys % span[2]
+    return out + lo
+
+
 def on_chunk_face(lat: ChunkLattice, chunk_cells: int) -> np.ndarray:
     """(N,) bool: which of the lattice's points lie on a chunk face (global index % chunk_cells == 0)."""
     on_face = [(o + np.arange(n + 1)) % chunk_cells == 0 for o, n in zip(lat.origin, lat.cells.shape, strict=True)]

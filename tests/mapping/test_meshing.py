@@ -467,3 +467,13 @@ def test_other_threads_always_read_a_complete_chunk_dict() -> None:
         seen.append(sum(c.version == 2 for c in chunks.values()))
     worker.join()
     assert seen == sorted(seen) and max(seen) <= len(first)
+
+
+def test_packed_rows_unpack_to_themselves() -> None:
+    from h2viz.mapping.marching import pack_rows, unpack_rows
+
+    rows = np.random.default_rng(2).integers(-(10**5), 10**5, size=(1000, 3))
+    lo, hi = rows.min(axis=0), rows.max(axis=0)
+    keys = pack_rows(rows, lo, hi)
+    assert keys is not None
+    np.testing.assert_array_equal(unpack_rows(keys, lo, hi), rows)
