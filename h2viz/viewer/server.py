@@ -162,7 +162,7 @@ class Dashboard:
 
     def _count_viewers(self, _client: Any = None) -> None:
         """Tell the worker how many browsers are connected (it keeps the live mesh only for someone)."""
-        self.worker.set_viewers(len(self.server.get_clients()))
+        self.worker.set_viewers(self.client_count())
 
     def client_count(self) -> int:
         return len(self.server.get_clients())

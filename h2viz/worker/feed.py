@@ -83,15 +83,15 @@ class FrameFeed:
             while self._position < len(self._items) and not self._stop.is_set():
                 if 0 < self._max_frames <= self.read:
                     break
-                if self._overdue(clock):  # behind the stream's clock: the next frame is due already
-                    self._position += max(1, self._settings.stride)
-                    self.read += 1
+                overdue = self._overdue(clock)  # behind the stream's clock: the next frame is due already
+                item = self._items[self._position]
+                self._position += max(1, self._settings.stride)
+                self.read += 1
+                if overdue:  # passed over without reading it
                     with self._cond:
                         self.dropped += 1
                     continue
-                frame = self._source.get(*self._items[self._position])
-                self._position += max(1, self._settings.stride)
-                self.read += 1
+                frame = self._source.get(*item)
                 if frame is not None:
                     clock = self._deliver(frame, clock)
         except Exception:  # a broken source ends the stream; the worker reports it
