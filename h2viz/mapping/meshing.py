@@ -23,7 +23,7 @@ import trimesh
 from h2viz.errors import ConfigError
 from h2viz.mapping.chunk_values import ChunkValues
 from h2viz.mapping.lattice_values import ColorFn, MeshingError, SdfFn, sample_lattices
-from h2viz.mapping.marching import ChunkLattice, chunk_lattice, weld
+from h2viz.mapping.marching import ChunkLattice, chunk_lattice, unique_rows, weld
 from h2viz.mapping.mesh_passes import (
     NEVER,
     ChunkKey,
@@ -244,11 +244,14 @@ class ChunkedMesher:
         base, on_face = np.floor_divide(points, chunk_cells), points % chunk_cells == 0
         for offset in itertools.product((0, -1), repeat=3):
             rows = np.flatnonzero(np.all(on_face | (np.array(offset) == 0), axis=1) & ~known)
-            keys, inverse = np.unique(base[rows] + offset, axis=0, return_inverse=True) if len(rows) else ([], [])
-            for j, key in enumerate(tuple(int(i) for i in k) for k in keys):
+            if len(rows) == 0:
+                continue
+            keys, _, inverse = unique_rows(base[rows] + offset)
+            order = np.argsort(inverse, kind="stable")  # rows grouped by chunk
+            groups = np.split(rows[order], np.cumsum(np.bincount(inverse, minlength=len(keys)))[:-1])
+            for key, sel in zip((tuple(int(i) for i in k) for k in keys), groups, strict=True):
                 cache = None if key in exclude else self._values.get(key)
                 if cache is not None and cache.resolution == chunk_cells // self._chunk_voxels:
-                    sel = rows[np.asarray(inverse).reshape(-1) == j]
                     found, held = cache.lookup(points[sel])
                     known[sel[found]], values[sel[found]] = True, held[found]
         return known, values
