@@ -347,6 +347,8 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
         print(f"\n| mesh streaming ({r.label}) | median / p90 / max |\n|---|---:|")
         for name, values, scale in rows:
             print(f"| {name} | {_median_p90_max(values, scale)} |")
+        late = sum(1 for s in r.all_s if s > 1.0)
+        print(f"| frames whose chunks took more than 1 s to reach the browser | {late} of {len(r.all_s)} |")
         print(f"| mesh updates received | {len(r.update_bytes)} |")
         print(f"| chunks re-meshed by refresh passes | {r.refreshed} |")
         print(f"| mesh thread busy / mapping time | {100 * r.mesh_busy_share:.0f} % |")

@@ -67,6 +67,9 @@ def test_latest_slot_keeps_the_newest_value() -> None:
     slot.put(1)
     assert slot.put(2) == 2 and slot.get() == (2, 2)
     assert slot.wait_newer(2, 0.05) == (2, 2)  # times out, returns the current pair
+    assert slot.wait_until(lambda v: v == 2, 0.0) and not slot.wait_until(lambda v: v > 2, 0.05)
+    threading.Timer(0.05, slot.put, args=(3,)).start()
+    assert slot.wait_until(lambda v: v > 2, 10.0)
 
 
 def test_every_frame_mode_maps_all_frames_in_order(make_worker: Factory) -> None:
@@ -341,6 +344,24 @@ def test_mesh_thread_merges_waiting_jobs_and_cuts_the_running_one_short() -> Non
         assert first.stopped and len(first.ran) < 50  # the waiting job cut the running one short
         assert third.names == ["third", "second"] and third.ran == [0] and second.ran == []
         assert published and not thread.errors
+    finally:
+        thread.stop()
+
+
+def test_a_late_mesh_job_holds_the_caller_until_its_required_chunks_are_done() -> None:
+    thread = MeshThread(lambda: None, lambda: 0.0).start()
+    try:
+        assert thread.catch_up(0.0, 1.0) == 0.0  # nothing runs
+        gate = threading.Event()
+        job = ScriptedJob("late", passes=3, gate=gate)
+        thread.submit(job)
+        assert job.started.wait(10)
+        assert thread.catch_up(60.0, 1.0) == 0.0  # running, but not late
+        assert thread.catch_up(0.0, 0.2) > 0.0 and job.ran == []  # late: waits, but no longer than told
+        threading.Timer(0.2, gate.set).start()
+        assert thread.catch_up(0.0, 10.0) > 0.0
+        assert job.ran[:1] == [0]  # released once the required pass was done
+        assert thread.wait_idle(10) and thread.catch_up(0.0, 1.0) == 0.0
     finally:
         thread.stop()
 

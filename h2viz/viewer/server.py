@@ -124,7 +124,16 @@ class Dashboard:
                 self._show_errors()
             except Exception:  # keep serving; the next snapshot redraws what failed
                 log.exception("dashboard update failed")
-            self._stop.wait(max(0.0, 1.0 / UPDATE_HZ - (time.monotonic() - t0)))
+            self._pause(max(0.0, 1.0 / UPDATE_HZ - (time.monotonic() - t0)))
+
+    def _pause(self, seconds: float) -> None:
+        """Wait until the next panel refresh, or less when a snapshot brings new mesh chunks: the mesh thread
+        already limits how often those come, and waiting here would only add to their latency."""
+        shown = self._latest.chunks if self._latest is not None else None
+        if self.layers.mesh.enabled and shown is not None:
+            self.worker.slot.wait_until(lambda snap: snap.chunks is not shown, seconds)
+        else:
+            self._stop.wait(seconds)
 
     def _draw_scene(self, snap: MapSnapshot, version: int) -> None:
         """Bring the scene to `snap` when the mesh changed or SCENE_PERIOD_S has passed, in one atomic

@@ -35,6 +35,8 @@ log = logging.getLogger("h2viz.worker")
 MAX_CONSECUTIVE_FAILURES = 3
 REFRESH_S = 0.1  # each frame's mesh job also refreshes dirty voxels and stale chunks for up to this long
 IDLE_REFRESH_S = 1.0  # same while mapping is paused or finished (until every chunk is up to date)
+MESH_DEADLINE_S = 0.3  # a mesh job still on its required chunks this long after submission gets the cores to itself
+MESH_WAIT_MAX_S = 2.0  # ... for at most this long at a time
 
 
 def rss_mb() -> float:
@@ -197,8 +199,12 @@ class MappingWorker(CommandServing):
         self._publish()
 
     def _between_iterations(self) -> None:
-        """(mapping thread, between optimisation steps) Frames that ended while the mesh thread was busy go to it
-        as soon as it is free, not at the end of the next frame: that wait was the tail of the mesh latency."""
+        """(mapping thread, between optimisation steps) A mesh job that is late with a frame's changes gets the
+        cores until it has them (on two cores, mapping beside a large job such as the first frame's would
+        double its time); frames that ended while the mesh thread was busy go to it as soon as it is free, not at
+        the end of the next frame: that wait was the tail of the mesh latency."""
+        if self.live:
+            self.meshing.catch_up(MESH_DEADLINE_S, MESH_WAIT_MAX_S)
         if self._unmeshed and self.live and self._mesh_due() and not self.meshing.busy:
             self._submit_mesh(REFRESH_S)
 
@@ -237,7 +243,13 @@ class MappingWorker(CommandServing):
             self.meshing.submit(job)
 
     def _remesh(self) -> None:
-        """Re-mesh every chunk from the field now and publish it (waits for the mesh thread)."""
+        """Re-mesh every chunk from the field now and publish it (waits for the mesh thread). The job still
+        running finishes first, and frames not yet meshed get a job of their own: otherwise the last frames' changes
+        would reach the browsers only with the whole map."""
+        self.meshing.wait_idle()
+        if self._unmeshed and self.live:  # frames that ended while it ran: their own (small) job first
+            self._submit_mesh(0.0)
+            self.meshing.wait_idle()
         self._submit_mesh(0.0, whole=True)
         self.meshing.wait_idle()
 

@@ -40,6 +40,7 @@ class MeshThread:
         self._running = False
         self._stopping = False
         self._unpublished = False
+        self._required_since: float | None = None  # submission (monotonic) of the running job while on required passes
         self._next_publish = 0.0  # time.monotonic() from which publishing is allowed again
         self.passes: deque[PassRecord] = deque(maxlen=10_000)
         self.errors: list[str] = []
@@ -79,6 +80,17 @@ class MeshThread:
             )
             return bool(done) and not self._stopping
 
+    def catch_up(self, deadline_s: float, timeout_s: float) -> float:
+        """Block while the running job has been on its required passes for more than `deadline_s` since it was
+        submitted (at most `timeout_s`), so that the caller stops competing for the cores; the seconds waited."""
+        with self._cond:
+            since = self._required_since
+            if since is None or time.monotonic() - since <= deadline_s:
+                return 0.0
+            start = time.monotonic()
+            self._cond.wait_for(lambda: self._required_since is None or self._stopping, timeout_s)
+            return time.monotonic() - start
+
     # -- the thread ----------------------------------------------------------------------------
     def _run(self) -> None:
         while True:
@@ -98,12 +110,17 @@ class MeshThread:
 
     def _execute(self, job: Any, submitted: float) -> None:
         start = time.perf_counter()
+        with self._cond:
+            self._required_since = time.monotonic() - (time.time() - submitted)
 
         def on_pass(chunks: list[tuple[int, int, int]], required: bool) -> None:
             record = PassRecord(job.version, job.field_version, submitted, time.time(), tuple(chunks), required)
             self.passes.append(record)
             with self._cond:
                 self._unpublished = True
+                if not required:
+                    self._required_since = None
+                    self._cond.notify_all()
             self._flush()
 
         try:
@@ -114,7 +131,7 @@ class MeshThread:
         finally:
             self.busy_s += time.perf_counter() - start
             with self._cond:
-                self._running = False
+                self._running, self._required_since = False, None
                 self._cond.notify_all()
         self._flush()
 

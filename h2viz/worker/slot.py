@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -31,3 +32,8 @@ class LatestSlot(Generic[T]):
         with self._cond:
             self._cond.wait_for(lambda: self._version > version, timeout=timeout_s)
             return self._version, self._value
+
+    def wait_until(self, predicate: Callable[[T], bool], timeout_s: float) -> bool:
+        """Block until the value satisfies `predicate` or the timeout passes; whether it does."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._value is not None and predicate(self._value), timeout=timeout_s)

@@ -3,7 +3,10 @@ and that only what changed is sent again."""
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Iterator
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -148,4 +151,33 @@ def test_dashboard_sends_the_scene_when_the_mesh_changes_and_otherwise_once_a_pe
         dash._draw_scene(snapshot(chunks={a.key: a, b.key: b}, trajectory=path(5)), 4)
         assert dash.scene_updates == 3 and dash.layers.trajectory.n_drawn == 5
     finally:
+        dash.server.stop()
+
+
+def test_dashboard_wakes_for_new_mesh_chunks_but_waits_out_other_changes() -> None:
+    from h2viz.config import Config
+    from h2viz.viewer.server import Dashboard
+    from h2viz.worker import MappingWorker
+    from tests.viewer.fakes import FakeMapper
+
+    worker = MappingWorker(BoxRoomSource(n=2), FakeMapper(), Config())  # type: ignore[arg-type]
+    dash = Dashboard(worker, Config(), port=0)
+    try:
+        a, b = chunk((0, 0, 0)), chunk((1, 0, 0))
+        shown = snapshot(chunks={a.key: a})
+        worker.slot.put(shown)
+        dash._latest = shown
+
+        def pause_returns(new: object, join_s: float) -> bool:
+            waiter = threading.Thread(target=dash._pause, args=(30.0,), daemon=True)
+            waiter.start()
+            time.sleep(0.05)
+            worker.slot.put(new)
+            waiter.join(timeout=join_s)
+            return not waiter.is_alive()
+
+        assert not pause_returns(replace(shown, frames_done=7), 0.5)  # same chunks: waits for the panel period
+        assert pause_returns(snapshot(chunks={a.key: a, b.key: b}), 10.0)  # new chunks: drawn at once
+    finally:
+        dash._stop.set()
         dash.server.stop()
