@@ -244,9 +244,10 @@ class Mapper:
         """Freeze what a mesh update needs, to run on any thread while mapping goes on: new voxels first, then
         for up to `refresh_s` seconds the voxels allocated or observed since the last job and the stalest
         chunks; `whole` re-meshes every chunk from the field now instead. None when nothing changed since
-        everything was last meshed. Only voxels whose priors are initialised are meshed: a voxel at the edge
-        of the view would otherwise close the surface with a skirt where its unobserved corners meet observed
-        ones."""
+        everything was last meshed. A voxel at the edge of the view, whose corners do not all hold priors, would
+        close the surface with a skirt where its unobserved corners meet observed ones: with `mesh_observed_only`
+        its faces are kept only where depth was measured in their own 1.25 cm cell (measured surfaces there are
+        kept, skirts are not), otherwise such voxels are not meshed."""
         if not self.touched.any() and self.mesher.stale(self.frames_done, self.cfg.mesh_observed_only) == 0:
             return None
         self.version += 1
@@ -255,12 +256,17 @@ class Mapper:
         return job
 
     def _frozen_job(self, mesher: ChunkedMesher, refresh_s: float, whole: bool) -> MeshJob:
-        meshable = np.flatnonzero(self.priors.initialised(self.octree.n_voxels))  # (V',) voxel ids
+        initialised = self.priors.initialised(self.octree.n_voxels)  # (V,)
+        support = None
+        if self.cfg.mesh_observed_only:  # every voxel; where priors are missing, faces need depth in their own cell
+            meshable = np.arange(self.octree.n_voxels)
+            support = self.observed.snapshot(self.octree, strict=~initialised)
+        else:
+            meshable = np.flatnonzero(initialised)  # (V',) voxel ids
         dirty = self.touched[meshable] & (not whole)
         band = self.cfg.mesh_prior_band if self.cfg.priors else 0.0
         field = FrozenField(self.field, self.cfg.truncation_m, band)
         coords = self.octree.voxel_coords()[meshable]
-        support = self.observed.snapshot(self.octree) if self.cfg.mesh_observed_only else None
         return MeshJob(
             mesher, coords, meshable, dirty, field, self.version, self.frames_done, refresh_s, whole, support
         )

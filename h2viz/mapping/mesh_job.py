@@ -99,7 +99,7 @@ class MeshJob:
     """One mesher update, frozen on the mapping thread and runnable on any thread (one job at a time)."""
 
     mesher: ChunkedMesher
-    voxel_coords: np.ndarray  # (V,3) int64 voxels to mesh (those with initialised priors)
+    voxel_coords: np.ndarray  # (V,3) int64 voxels to mesh
     voxel_ids: np.ndarray  # (V,) int64 their ids in the octree (and the field's tables)
     dirty_voxels: np.ndarray  # (V,) bool allocated or observed since the last job: their points are re-evaluated
     field: FrozenField

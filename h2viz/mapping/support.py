@@ -75,11 +75,12 @@ class ObservedCells:
         _, vid, word, bit = _in_voxels(octree.voxels, _distinct(np.floor(points / self.cell_m).astype(np.int64)))
         np.bitwise_or.at(self.words, (vid, word), bit)
 
-    def snapshot(self, octree: VoxelOctree) -> ObservedSupport:
+    def snapshot(self, octree: VoxelOctree, strict: np.ndarray | None = None) -> ObservedSupport:
         """What meshing needs to test faces, frozen now: the voxel keys and the cell bits (the lookup index and
-        the dilation are built on the thread that first tests a face)."""
+        the dilation are built on the thread that first tests a face); `strict` (V,) bool marks voxels whose faces
+        need depth measured in their own cell (see ObservedSupport)."""
         self.grow(octree.n_voxels)
-        return ObservedSupport(self.cell_m, octree.voxels.keys[: octree.n_voxels], self.words.copy())
+        return ObservedSupport(self.cell_m, octree.voxels.keys[: octree.n_voxels], self.words.copy(), strict)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"words": self.words}
@@ -96,6 +97,7 @@ class ObservedSupport:
     cell_m: float
     keys: np.ndarray  # (V,) int64
     words: np.ndarray  # (V,8) uint64
+    strict: np.ndarray | None = None  # (V,) bool: a face there needs its own cell observed, not only a neighbour
     _index: KeyIndex | None = None
     _dilated: np.ndarray | None = None
 
@@ -112,10 +114,14 @@ class ObservedSupport:
         return self._dilated
 
     def contains(self, points: np.ndarray) -> np.ndarray:
-        """(N,) bool: points (N,3) whose cell is within one cell of an observed cell."""
+        """(N,) bool: points (N,3) whose cell is within one cell of an observed cell (in `strict` voxels: whose
+        cell is observed)."""
         ok, vid, word, bit = _in_voxels(self.index, np.floor(np.asarray(points) / self.cell_m).astype(np.int64))
+        held = self.dilated()[vid, word]  # (N',) uint64
+        if self.strict is not None:
+            held = np.where(self.strict[vid], self.words[vid, word], held)
         out = np.zeros(len(ok), dtype=bool)
-        out[ok] = (self.dilated()[vid, word] & bit) != 0
+        out[ok] = (held & bit) != 0
         return out
 
 

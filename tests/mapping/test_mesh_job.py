@@ -10,6 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+import trimesh
 from scipy.spatial import cKDTree
 
 from h2viz.config import MappingConfig
@@ -17,6 +18,7 @@ from h2viz.geometry import backproject
 from h2viz.mapping.mapper import Mapper
 from h2viz.mapping.mesh_job import FrozenField, keep_prior_sign
 from h2viz.mapping.meshing import ChunkedMesher, merge_chunks
+from h2viz.mapping.octree import encode
 from tests.mapping.analytic import Scene, orbit
 
 torch.set_num_threads(2)
@@ -92,10 +94,11 @@ def test_jobs_on_another_thread_then_a_full_refresh_equal_a_fresh_mesh() -> None
     mesh = mapper.mesh()  # every chunk brought up to the current field
     assert mapper.mesher.stale(mapper.frames_done) == 0 and mapper.mesh_job() is None
     frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
-    meshable = np.flatnonzero(mapper.priors.initialised(mapper.octree.n_voxels))
+    meshable = np.arange(mapper.octree.n_voxels)  # every voxel, as the mapper's jobs with the filter on
     fresh_mesher = ChunkedMesher(mapper.voxel_size_m, mapper.cfg.mesh_resolution, mapper.cfg.chunk_voxels)
     coords = mapper.octree.voxel_coords()[meshable]
-    keep = mapper.observed.snapshot(mapper.octree).contains  # faces near measured depth, as the mapper's jobs
+    strict = ~mapper.priors.initialised(mapper.octree.n_voxels)
+    keep = mapper.observed.snapshot(mapper.octree, strict).contains  # faces near measured depth
     fresh = merge_chunks(
         fresh_mesher.update(coords, None, frozen.sdf_m, frozen.color_u8, 1, voxel_ids=meshable, keep_fn=keep)
     )
@@ -132,6 +135,32 @@ def test_surfaces_away_from_measured_depth_are_left_out_of_the_mesh() -> None:
         assert gap.max() < 2 * np.sqrt(3) * mapper.cfg.voxel_size_m / 8  # within the 3x3x3 cells of an observed one
     mapper.mesh_observed_only = False  # nothing else changed: the toggle alone re-meshes every chunk
     assert len(mapper.mesh().faces) > 0.5 * len(on_depth.faces)  # the same surface, kept when the filter is off
+
+
+def test_edge_voxels_keep_only_faces_on_measured_depth() -> None:
+    """Voxels at the sphere's silhouette have corners no depth reached (their priors are pending): with the
+    filter on, their faces are kept where depth was measured in the face's own cell; with it off, they are not
+    meshed at all."""
+    mapper, scene, poses = sphere_mapper(1)
+    seen = _points(scene, 0, poses[0])  # (N,3)
+    edge = ~mapper.priors.initialised(mapper.octree.n_voxels)  # (V,)
+    assert edge.sum() > 10
+
+    def in_edge_voxels(mesh: trimesh.Trimesh) -> np.ndarray:
+        cells = np.floor(mesh.triangles_center / mapper.voxel_size_m).astype(np.int64)
+        return edge[mapper.octree.voxels.lookup(encode(cells))]
+
+    kept = mapper.mesh()
+    at_edge = in_edge_voxels(kept)
+    assert at_edge.sum() > 50  # measured surface in edge voxels is meshed
+    gap, _ = cKDTree(seen).query(kept.triangles_center[at_edge])
+    assert gap.max() < np.sqrt(3) * mapper.cfg.voxel_size_m / 8  # within the face's own observed cell
+    off = np.abs(scene.sdf(kept.triangles_center[at_edge]))  # grazing views after one frame: mm, not a skirt's cm
+    assert np.median(off) < 0.005 and np.percentile(off, 90) < 0.01
+    mapper.mesh_observed_only = False
+    unfiltered = mapper.mesh()
+    assert not in_edge_voxels(unfiltered).any()
+    assert unfiltered.area < kept.area
 
 
 def _points(scene: Scene, i: int, T: np.ndarray) -> np.ndarray:

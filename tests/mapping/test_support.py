@@ -74,6 +74,19 @@ def test_points_outside_allocated_voxels_are_ignored_and_snapshots_are_frozen() 
     assert observed.snapshot(octree).contains(np.array([[0.08, 0.08, 0.08]]))[0]
 
 
+def test_strict_voxels_need_their_own_cell_observed() -> None:
+    octree = VoxelOctree(VS, min_points=0, expansion=False)
+    octree.allocate(np.array([[0.05, 0.05, 0.05], [0.15, 0.05, 0.05]]))
+    observed = ObservedCells(VS)
+    observed.add(octree, np.array([[0.051, 0.051, 0.051], [0.151, 0.051, 0.051]]))
+    own = np.array([[0.052, 0.052, 0.052], [0.152, 0.052, 0.052]])  # in the observed cells
+    next_door = own + [0.0, CELL, 0.0]  # one cell over
+    queries = np.concatenate([own, next_door])
+    assert observed.snapshot(octree).contains(queries).tolist() == [True, True, True, True]
+    second = observed.snapshot(octree, strict=np.array([False, True]))  # only the second voxel is strict
+    assert second.contains(queries).tolist() == [True, True, True, False]
+
+
 def test_meshing_keeps_only_the_surface_near_observed_depth() -> None:
     """Two parallel planes in one voxel slab; depth was measured on the first only: the second, 5 cm away, goes."""
     voxels = np.array([(i, j, k) for i in range(-3, 3) for j in range(-3, 3) for k in (0,)], dtype=np.int64)
