@@ -9,9 +9,10 @@ per resolution. Browsers are Debian's headless chromium driven by Playwright, on
 Speed runs leave the pages alone; the latency run (one browser) ships page 0's websocket frames to this
 process to time mesh arrivals, which itself costs CPU, so its speed is shown apart. Latency of frame i: from
 the end of its mapping to the browser receiving (first) the first pass and (all) every chunk of the first
-mesh job that includes frame i (the chunks its voxels were allocated in or observed, plus chunks whose voxel
-set changed). Mapping speed counts frames over the time from the start to the last frame mapped (final
-meshing and metrics excluded).
+mesh job that includes frame i: the chunks whose voxel set changed and those of voxels it allocated, or, for
+a frame that allocated nothing, the job's first pass (the chunks of the voxels it observed, most first).
+Mapping speed counts frames over the time from the start to the last frame mapped (final meshing and metrics
+excluded).
 """
 
 from __future__ import annotations
@@ -288,11 +289,14 @@ def _measure(run: Run, worker: MappingWorker, wire: Wire) -> None:
     run.refreshed = sum(len(p.chunks) for p in passes if not p.required)
     run.mesh_busy_share = worker.meshing.busy_s / max(run.mapping_s, 1e-9)
     for n, t_mapped in enumerate(sorted(worker.mapped_at.values()), start=1):
-        version = next((v for v in sorted(required) if required[v] and required[v][0].field_version >= n), None)
+        version = next((v for v in sorted(jobs) if jobs[v][0].field_version >= n), None)
         if version is None:
             continue
-        first = [wire.arrival(k, version) for k in required[version][0].chunks]
-        every = [wire.arrival(k, version) for p in required[version] for k in p.chunks]
+        # the frame's chunks: its job's required ones, or when it allocated nothing (no voxel set changed) the
+        # first pass over the voxels it observed (those chunks come first, most observed voxels first)
+        own = required[version] or jobs[version][:1]
+        first = [wire.arrival(k, version) for k in own[0].chunks]
+        every = [wire.arrival(k, version) for p in own for k in p.chunks]
         if any(first):
             run.first_s.append(min(a[0] for a in first if a) - t_mapped)
         if every and all(every):

@@ -381,6 +381,25 @@ def test_mesh_thread_publishes_at_most_at_the_update_rate() -> None:
         thread.stop()
 
 
+def test_refresh_results_wait_for_the_next_required_pass_instead_of_delaying_it() -> None:
+    published: list[float] = []
+    thread = MeshThread(lambda: published.append(time.monotonic()), lambda: 2.0).start()  # a 0.5 s period
+    try:
+        first = ScriptedJob("first", passes=2)  # its required pass, then a refresh pass
+        thread.submit(first)
+        assert first.started.wait(10)
+        time.sleep(0.1)
+        thread.submit(ScriptedJob("second"))
+        assert thread.wait_idle(10)
+        assert len(published) == 2  # the refresh result went out with the second job's required chunks
+        assert published[1] - published[0] < 0.9  # one period after the first update, not two
+        time.sleep(0.6)  # a period later: the next required pass goes out at once
+        thread.submit(ScriptedJob("third", passes=2))
+        assert thread.wait_idle(10) and len(published) == 4  # with no job after it, a refresh result goes alone
+    finally:
+        thread.stop()
+
+
 def test_mesh_errors_are_reported_and_later_jobs_still_run() -> None:
     thread = MeshThread(lambda: None, lambda: 0.0).start()
     try:
@@ -484,6 +503,36 @@ def test_frames_that_end_while_meshing_go_to_the_mesh_thread_as_soon_as_it_is_fr
     assert len(handed_between_steps) >= 2
     assert len(while_mapping) <= 12  # still at most one freeze of the field per frame
     assert set(worker.slot.get()[1].chunks) == set(mapper.mesh_chunks())
+
+
+def test_a_frame_left_unmeshed_goes_to_the_mesh_thread_between_render_bands() -> None:
+    """Renders are served between frames for up to a frame's time: a frame that ended while the mesh thread was
+    busy must not wait for them."""
+    from concurrent.futures import Future
+
+    from h2viz.types import Command
+
+    mapper = FakeMapper()
+    worker = MappingWorker(BoxRoomSource(n=2), mapper, Config())  # type: ignore[arg-type]  # not started
+    mapper.integrate(BoxRoomSource(n=2).get(0, 0))  # a frame mapped, its mesh job not handed over yet
+    worker._unmeshed = 1
+    events: list[str] = []
+    make_job = mapper.mesh_job
+
+    def mesh_job(refresh_s: float = 0.0, whole: bool = False) -> object:
+        events.append("mesh job")
+        return make_job(refresh_s, whole)
+
+    def bands() -> Iterator[None]:
+        for _ in range(3):
+            events.append("band")
+            yield
+
+    mapper.mesh_job = mesh_job  # type: ignore[method-assign]
+    worker._renders.append((Command("render", {}, Future()), bands()))
+    worker._last_map_s = 10.0  # a budget that covers every band
+    worker._render_slices()
+    assert events == ["band", "mesh job", "band", "band"]
 
 
 def test_each_frame_reaches_the_snapshots_through_the_mesh_thread(make_worker: Factory) -> None:

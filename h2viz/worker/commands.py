@@ -49,6 +49,9 @@ class CommandServing:
     def _idle(self) -> bool:
         raise NotImplementedError
 
+    def _between_steps(self) -> None:
+        raise NotImplementedError
+
     def _serve_commands(self, timeout_s: float) -> None:
         try:
             cmd = self._commands.get(timeout=timeout_s) if timeout_s > 0 else self._commands.get_nowait()
@@ -120,6 +123,7 @@ class CommandServing:
             try:
                 next(job)
                 self._renders.rotate(-1)
+                self._between_steps()  # a mesh job waiting for the mesh thread goes now, not after the renders
             except StopIteration as done:
                 self._renders.popleft()
                 requests.settle(cmd.reply, done.value)

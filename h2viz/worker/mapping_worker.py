@@ -57,7 +57,7 @@ class MappingWorker(CommandServing):
     ) -> None:
         self.source, self.mapper, self.cfg = source, mapper, cfg
         self.mapper.mesh_resolution = cfg.viewer.mesh_resolution  # the live mesh; downloads use cfg.mapping's
-        self.mapper.on_iteration = self._between_iterations
+        self.mapper.on_iteration = self._between_steps
         self.settings = settings or settings_from_config(cfg)
         self.slot: LatestSlot[MapSnapshot] = LatestSlot()
         self.mapped_at: dict[int, float] = {}  # frame index -> time.time() when its mapping finished
@@ -198,11 +198,12 @@ class MappingWorker(CommandServing):
         self._resolve_steps(stats)
         self._publish()
 
-    def _between_iterations(self) -> None:
-        """(mapping thread, between optimisation steps) A mesh job that is late with a frame's changes gets the
-        cores until it has them (on two cores, mapping beside a large job such as the first frame's would
-        double its time); frames that ended while the mesh thread was busy go to it as soon as it is free, not at
-        the end of the next frame: that wait was the tail of the mesh latency."""
+    def _between_steps(self) -> None:
+        """(mapping thread, between optimisation steps and render bands) A mesh job that is late with a frame's
+        changes gets the cores until it has them (on two cores, mapping beside a large job such as the first
+        frame's would double its time); frames that ended while the mesh thread was busy go to it as soon as it is
+        free, not at the end of the next frame or after the renders served between frames: those waits were the
+        tail of the mesh latency."""
         if self.live:
             self.meshing.catch_up(MESH_DEADLINE_S, MESH_WAIT_MAX_S)
         if self._unmeshed and self.live and self._mesh_due() and not self.meshing.busy:

@@ -40,6 +40,8 @@ class MeshThread:
         self._running = False
         self._stopping = False
         self._unpublished = False
+        self._unpublished_required = False  # among the unpublished results are a job's required chunks
+        self._hold_until = 0.0  # time.monotonic() until which refresh-only results wait for a required pass
         self._required_since: float | None = None  # submission (monotonic) of the running job while on required passes
         self._next_publish = 0.0  # time.monotonic() from which publishing is allowed again
         self.passes: deque[PassRecord] = deque(maxlen=10_000)
@@ -98,7 +100,7 @@ class MeshThread:
                 while self._pending is None and not self._stopping:
                     if self._unpublished and self._publish_allowed():
                         break
-                    wait = max(0.0, self._next_publish - time.monotonic()) if self._unpublished else None
+                    wait = max(0.0, self._publish_at() - time.monotonic()) if self._unpublished else None
                     self._cond.wait(wait)
                 if self._stopping:
                     return
@@ -117,6 +119,10 @@ class MeshThread:
             record = PassRecord(job.version, job.field_version, submitted, time.time(), tuple(chunks), required)
             self.passes.append(record)
             with self._cond:
+                if required:
+                    self._unpublished_required = True
+                elif not self._unpublished:
+                    self._hold_until = time.monotonic() + self._period()
                 self._unpublished = True
                 if not required:
                     self._required_since = None
@@ -139,17 +145,28 @@ class MeshThread:
         with self._cond:
             return self._pending is not None or self._stopping
 
+    def _period(self) -> float:
+        rate = self._rate_hz()
+        return 1.0 / rate if rate > 0 else 0.0
+
+    def _publish_at(self) -> float:
+        """When the unpublished results may go out: one update period after the last one; results of refresh
+        passes alone also wait up to a period for the next job's required chunks, so that they do not start a
+        period those would then have to wait out (updates come about one a job instead of two)."""
+        if self._unpublished_required:
+            return self._next_publish
+        return max(self._next_publish, self._hold_until)
+
     def _publish_allowed(self) -> bool:
-        return time.monotonic() >= self._next_publish
+        return time.monotonic() >= self._publish_at()
 
     def _flush(self) -> None:
         """Publish unpublished results when the rate allows."""
         with self._cond:
             if not self._unpublished or not self._publish_allowed():
                 return
-            self._unpublished = False
-            rate = self._rate_hz()
-            self._next_publish = time.monotonic() + (1.0 / rate if rate > 0 else 0.0)
+            self._unpublished = self._unpublished_required = False
+            self._next_publish = time.monotonic() + self._period()
         try:
             self._publish()
         except Exception:
