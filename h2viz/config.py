@@ -186,6 +186,10 @@ class MappingConfig:
     """coverage | random | overlap."""
     early_ending: bool = True
     """Stop a frame's optimisation when the loss exceeds its running mean twice in a row."""
+    refine_iters: int = 0
+    """h2viz map: after the last frame, this many more optimisation steps, each over K + 1 keyframes drawn at
+    random, before meshing and evaluation (0 = none: the paper's online protocol). Sharpens colour and depth of
+    a finished map for export; not counted in the per-frame times."""
     lr: float = 1e-2
     """Adam learning rate for priors, hash tables and decoders."""
     w_rgb: float = 0.5

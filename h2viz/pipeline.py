@@ -148,6 +148,7 @@ def run_map(
         last_index = frame.index
         bar.set_postfix(t=f"{s.map_time_s:.2f}s", it=s.iterations, vox=s.n_voxels, kf=s.n_keyframes)
     bar.close()
+    refine_s = _refine(mapper, cfg.mapping.refine_iters, progress)
     mapper.update_mesh()
     mesh = mapper.mesh()
     mapper.export_mesh(out / "mesh.ply")
@@ -156,11 +157,21 @@ def run_map(
     if metrics:
         write_metrics(metrics, out / "metrics.json")
     dropped = stream.dropped if stream is not None else 0
-    _write_stats(out / "stats.json", stats, source, dropped)
+    _write_stats(out / "stats.json", stats, source, dropped, refine_s)
     return RunResult(out, stats, metrics, len(source.skipped), dropped)
 
 
-def _write_stats(path: Path, stats: list[FrameStats], source: FrameSource, dropped: int) -> None:
+def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:
+    """mapping.refine_iters more steps over the keyframes after the last frame; their seconds."""
+    if iterations <= 0:
+        return 0.0
+    start = time.perf_counter()
+    with tqdm(total=iterations, disable=not progress, unit="step", desc="refining", dynamic_ncols=True) as bar:
+        mapper.refine(iterations, on_step=lambda: bar.update(1))
+    return time.perf_counter() - start
+
+
+def _write_stats(path: Path, stats: list[FrameStats], source: FrameSource, dropped: int, refine_s: float) -> None:
     times = [s.map_time_s for s in stats]
     doc = {
         "frames": [dataclasses.asdict(s) for s in stats],
@@ -170,6 +181,7 @@ def _write_stats(path: Path, stats: list[FrameStats], source: FrameSource, dropp
             "p90_map_time_s": float(np.percentile(times, 90)) if times else None,
             "mean_iterations": float(np.mean([s.iterations for s in stats])) if stats else None,
             "dropped_frames": dropped,
+            "refine_s": refine_s,
         },
         "skipped": [dataclasses.asdict(s) for s in source.skipped],
     }

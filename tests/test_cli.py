@@ -59,6 +59,19 @@ def test_resume_continues_after_the_last_frame(run_dir: Path, tmp_path: Path) ->
     assert stats["frames"][0]["n_keyframes"] > 1
 
 
+def test_refinement_runs_after_the_last_frame_and_is_timed_apart(run_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "refined"
+    args = ["map", "--frames", "6", "--stride", "10", "--out", str(out), "-q", *TINY]
+    assert main([*args, "--set", "mapping.refine_iters=20"]) == 0
+    stats = json.loads((out / "stats.json").read_text())
+    plain = json.loads((run_dir / "stats.json").read_text())
+    assert stats["summary"]["refine_s"] > 0 and plain["summary"]["refine_s"] == 0
+    assert [f["iterations"] for f in stats["frames"]] == [f["iterations"] for f in plain["frames"]]
+    refined = json.loads((out / "metrics.json").read_text())["interpolate"]
+    before = json.loads((run_dir / "metrics.json").read_text())["interpolate"]
+    assert refined["psnr_db"] > before["psnr_db"]
+
+
 def test_realtime_maps_the_newest_frame_and_counts_the_dropped(tmp_path: Path) -> None:
     out = tmp_path / "realtime"
     assert main(["map", "--realtime", "--frames", "30", "--out", str(out), "-q", *TINY]) == 0

@@ -119,6 +119,26 @@ class Mapper:
             timings=timer.seconds,
         )
 
+    def refine(self, iterations: int, on_step: Callable[[], None] | None = None) -> int:
+        """Optimise the finished map `iterations` more steps, each on rays from K + 1 keyframes drawn at random
+        (no early ending; `on_step` after each), and mark every voxel for re-meshing. Returns the steps taken (0
+        without keyframes)."""
+        pick = np.random.default_rng(self.cfg.seed + self.frames_done)
+        timer = StageTimer()
+        n_frames = min(self.cfg.n_keyframes + 1, len(self.keyframe_rays))
+        done = 0
+        while done < iterations and n_frames > 0:
+            frames = [self.keyframe_rays[i] for i in pick.choice(len(self.keyframe_rays), n_frames, replace=False)]
+            with timer("sampling"):
+                samples, batch = self._samples(frames)
+            self._step(samples, batch, timer)
+            done += 1
+            if on_step is not None:
+                on_step()
+        if done:
+            self.touched[:] = True
+        return done
+
     def _grow(self, new_voxels: np.ndarray) -> None:
         self.field.sync(self.octree)
         self.priors.grow(self.octree.n_corners, new_voxels)

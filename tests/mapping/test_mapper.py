@@ -77,6 +77,41 @@ def test_training_makes_rendered_depth_and_colour_match_a_box_room() -> None:
     assert np.median(mesh_error(mapper, scene)) < 0.004
 
 
+def test_refinement_over_the_keyframes_improves_an_undertrained_map() -> None:
+    scene = Scene("room", center=np.array([0.0, 0.0, 1.0]))
+    target = np.array([0.0, 0.0, 0.9])
+    poses = [
+        look_at(
+            target + 0.3 * np.array([np.cos(a), np.sin(a), 0.3]),
+            target + 2 * np.array([np.cos(a + 2), np.sin(a + 2), -0.2]),
+        )
+        for a in np.linspace(0, 2 * np.pi, 6, endpoint=False)
+    ]
+    frames = [scene.frame(i, T, width=64, height=48) for i, T in enumerate(poses)]
+    mapper = Mapper(small_cfg(max_iters=1, rays_per_iter=768, keyframe_iou=1.0))  # every frame a keyframe
+    assert mapper.refine(5) == 0  # nothing to refine yet
+    for f in frames:
+        mapper.integrate(f)
+
+    def errors() -> tuple[float, float]:
+        depth, colour = [], []
+        for f in frames:
+            d = mapper.render(f.K, f.T_world_camera, f.height, f.width, "depth")
+            rgb = mapper.render(f.K, f.T_world_camera, f.height, f.width, "rgb")
+            ok = (d > 0) & (f.depth_m > 0)
+            depth.append(np.abs(d - f.depth_m)[ok].mean())
+            colour.append(np.abs(rgb[ok] - f.rgb[ok] / 255.0).mean())
+        return float(np.mean(depth)), float(np.mean(colour))
+
+    depth_before, colour_before = errors()
+    mapper.touched[:] = False
+    steps: list[int] = []
+    assert mapper.refine(60, on_step=lambda: steps.append(1)) == 60 and len(steps) == 60
+    depth_after, colour_after = errors()
+    assert colour_after < 0.8 * colour_before and depth_after < depth_before
+    assert mapper.touched.all()  # everything is re-meshed from the refined field
+
+
 def test_checkpoint_round_trip_reproduces_renders_and_continues(tmp_path: Path) -> None:
     scene = Scene("sphere", radius=0.4)
     mapper = Mapper(small_cfg(max_iters=3))
