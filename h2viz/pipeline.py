@@ -36,13 +36,16 @@ class RunResult:
     metrics: dict[str, Any] = field(default_factory=dict)
     skipped: int = 0
     dropped: int = 0  # real-time mode: frames that arrived while the mapper was busy
+    refine_s: float = 0.0  # seconds of mapping.refine_iters steps after the last frame
 
     def summary(self) -> str:
-        times = np.array([s.map_time_s for s in self.stats]) if self.stats else np.zeros(1)
-        lines = [
-            f"mapped {len(self.stats)} frames ({self.skipped} skipped, {self.dropped} dropped); per-frame time median "
-            f"{np.median(times):.3f} s, p90 {np.percentile(times, 90):.3f} s",
-        ]
+        line = f"mapped {len(self.stats)} frames ({self.skipped} skipped, {self.dropped} dropped)"
+        if self.stats:
+            times = np.array([s.map_time_s for s in self.stats])
+            line += f"; per-frame time median {np.median(times):.3f} s, p90 {np.percentile(times, 90):.3f} s"
+        lines = [line]
+        if self.refine_s > 0:
+            lines.append(f"refined the map for {self.refine_s:.1f} s (mapping.refine_iters)")
         if self.metrics:
             lines.append(format_table(self.metrics))
         lines.append(f"outputs in {self.out_dir}")
@@ -158,7 +161,7 @@ def run_map(
         write_metrics(metrics, out / "metrics.json")
     dropped = stream.dropped if stream is not None else 0
     _write_stats(out / "stats.json", stats, source, dropped, refine_s)
-    return RunResult(out, stats, metrics, len(source.skipped), dropped)
+    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s)
 
 
 def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:

@@ -72,6 +72,14 @@ def test_refinement_runs_after_the_last_frame_and_is_timed_apart(run_dir: Path, 
     assert refined["psnr_db"] > before["psnr_db"]
 
 
+def test_run_summary_without_frames_gives_no_times_and_names_the_refinement(tmp_path: Path) -> None:
+    from h2viz.pipeline import RunResult
+
+    text = RunResult(tmp_path, [], refine_s=12.3).summary()
+    assert text.splitlines()[0] == "mapped 0 frames (0 skipped, 0 dropped)"
+    assert "refined the map for 12.3 s" in text
+
+
 def test_realtime_maps_the_newest_frame_and_counts_the_dropped(tmp_path: Path) -> None:
     out = tmp_path / "realtime"
     assert main(["map", "--realtime", "--frames", "30", "--out", str(out), "-q", *TINY]) == 0
