@@ -130,6 +130,8 @@ class MapSnapshot:
     dropped: int = 0
     metrics: dict[str, float] = field(default_factory=dict)
     memory_mb: float = 0.0
+    refine_left: int = 0  # refinement steps still to run (they run while mapping is paused or finished)
+    refined: int = 0  # refinement steps run so far
 
 
 class RenderMode(str, Enum):

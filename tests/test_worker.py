@@ -223,6 +223,22 @@ def test_settings_apply_live_and_resolution_remeshes(make_worker: Factory) -> No
     assert mapper.mesh_observed_only is False
 
 
+def test_refinement_runs_in_slices_once_mapping_is_finished(make_worker: Factory) -> None:
+    from h2viz.worker.mapping_worker import REFINE_SLICE
+
+    mapper = FakeMapper()
+    worker = make_worker(BoxRoomSource(n=4), mapper, paused=True)
+    with pytest.raises(H2vizError, match="nothing is mapped"):
+        worker.submit("refine", steps=12).result(10)
+    assert worker.submit("step").result(10) is not None  # one frame mapped; still paused: refinement runs
+    assert worker.submit("refine", steps=12).result(10) == 12
+    snap = wait_for(worker, lambda s: s.refined == 12 and s.refine_left == 0)
+    assert sum(mapper.refine_calls) == 12 and max(mapper.refine_calls) <= REFINE_SLICE
+    assert snap.paused and snap.frames_done == 1
+    with pytest.raises(H2vizError, match="positive"):
+        worker.submit("refine", steps=0).result(10)
+
+
 def test_mapping_failures_are_reported_and_pause_after_three_in_a_row(make_worker: Factory) -> None:
     mapper = FakeMapper()
     mapper.fail_frames = {1, 4, 5, 6}
@@ -268,6 +284,9 @@ def test_real_mapper_in_the_worker(make_worker: Factory, tmp_path) -> None:  # n
     assert hit.mean() > 0.5 and np.median(np.abs(depth[hit] - truth[hit])) < 0.1
     mesh = trimesh.load(io.BytesIO(worker.submit("export", format="glb").result(30)), file_type="glb", force="mesh")
     assert len(mesh.faces) > 0
+    assert worker.submit("refine", steps=8).result(30) == 8  # the finished map, refined in slices
+    refined = wait_for(worker, lambda s: s.refined == 8 and s.refine_left == 0, 60)
+    assert refined.chunks and not worker.errors
     path = worker.submit("save", path=str(tmp_path / "room.pt")).result(30)
     restored, _ = load_checkpoint(path, cfg)
     np.testing.assert_array_equal(restored.voxel_coords(), snap.voxel_coords)

@@ -26,6 +26,12 @@ def progress_markdown(snap: MapSnapshot) -> str:
     last = snap.stats[-1] if snap.stats else None
     recent = [s.map_time_s for s in snap.stats[-20:]]
     state = "finished" if snap.finished else ("paused" if snap.paused else "mapping")
+    if snap.refine_left and (snap.finished or snap.paused):
+        state = f"refining ({snap.refine_left} steps left)"
+    elif snap.refine_left:
+        state += f", {snap.refine_left} refinement steps queued"
+    elif snap.refined:
+        state += f", refined {snap.refined} steps"
     total = snap.frames_total if snap.frames_total is not None else "?"
     rows = [
         ("State", state),

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from h2viz.config import Config
 from h2viz.errors import H2vizError
-from h2viz.types import Command
+from h2viz.types import Command, FrameStats
 from h2viz.worker import requests
 from h2viz.worker.feed import FrameFeed, WorkerSettings
 
@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from h2viz.mapping.mapper import Mapper
 
 log = logging.getLogger("h2viz.worker")
-COMMANDS = ("pause", "resume", "step", "set", "render", "export", "save")
+COMMANDS = ("pause", "resume", "step", "set", "render", "export", "save", "refine")
 
 
 class CommandServing:
@@ -39,6 +39,8 @@ class CommandServing:
     _finished: bool
     _mesh_dirty: bool
     _last_map_s: float
+    _refine_left: int
+    _stats: list[FrameStats]
 
     def _publish(self) -> None:
         raise NotImplementedError
@@ -51,6 +53,18 @@ class CommandServing:
 
     def _between_steps(self) -> None:
         raise NotImplementedError
+
+    def _queue_refinement(self, args: dict[str, Any]) -> int:
+        """Queue `steps` refinement steps (Mapper.refine), run while mapping is paused or finished; the steps
+        now queued."""
+        steps = int(args.get("steps", 0))
+        if steps <= 0:
+            raise H2vizError(f"refine: steps must be a positive number, got {args.get('steps')!r}")
+        if not self._stats:
+            raise H2vizError("refine: nothing is mapped yet; map some frames first")
+        self._refine_left += steps
+        self._publish()
+        return self._refine_left
 
     def _serve_commands(self, timeout_s: float) -> None:
         try:
@@ -75,6 +89,7 @@ class CommandServing:
             "set": self._apply_settings,
             "export": self._export,
             "save": lambda a: requests.save_checkpoint(self.mapper, a["path"]),
+            "refine": self._queue_refinement,
         }
         if cmd.kind == "render":
             self._renders.append((cmd, requests.render_bands(self.mapper, cmd.args)))

@@ -35,6 +35,7 @@ log = logging.getLogger("h2viz.worker")
 MAX_CONSECUTIVE_FAILURES = 3
 REFRESH_S = 0.1  # each frame's mesh job also refreshes dirty voxels and stale chunks for up to this long
 IDLE_REFRESH_S = 1.0  # same while mapping is paused or finished (until every chunk is up to date)
+REFINE_SLICE = 5  # refinement steps between two looks at commands, renders and the mesh
 MESH_DEADLINE_S = 0.3  # a mesh job still on its required chunks this long after submission gets the cores to itself
 MESH_WAIT_MAX_S = 2.0  # ... for at most this long at a time
 
@@ -75,6 +76,7 @@ class MappingWorker(CommandServing):
         self._errors: list[str] = []
         self._failures = self._consecutive = self._unmeshed = self._version = 0
         self._mesh_dirty = False
+        self._refine_left = self._refined = 0
         self._viewers: int | None = None  # connected browsers; None: unknown, keep the live mesh up to date
         self._last_map_s = 0.0
         self._publish_lock = threading.Lock()
@@ -146,10 +148,12 @@ class MappingWorker(CommandServing):
             self._feed.start()
             self._publish()
             while not self._stop.is_set():
-                self._serve_commands(0.05 if self._idle() and not self._renders else 0.0)
+                self._serve_commands(0.05 if self._idle() and not (self._renders or self._refine_left) else 0.0)
                 self._render_slices()
                 if not self._idle():
                     self._map_next()
+                elif self._refine_left:
+                    self._refine_slice()
                 elif not self.meshing.busy:  # bring stale chunks up to date while nothing maps
                     self._submit_mesh(IDLE_REFRESH_S)
         except Exception as e:  # keep the process alive, make the failure visible
@@ -208,6 +212,16 @@ class MappingWorker(CommandServing):
             self.meshing.catch_up(MESH_DEADLINE_S, MESH_WAIT_MAX_S)
         if self._unmeshed and self.live and self._mesh_due() and not self.meshing.busy:
             self._submit_mesh(REFRESH_S)
+
+    def _refine_slice(self) -> None:
+        """A few queued refinement steps; the live mesh follows the refined field (every voxel is re-meshed)."""
+        steps = min(REFINE_SLICE, self._refine_left)
+        done = self.mapper.refine(steps)
+        self._refine_left = 0 if done < steps else self._refine_left - steps  # no keyframes: nothing to refine
+        self._refined += done
+        if self.live and not self.meshing.busy:
+            self._submit_mesh(REFRESH_S)
+        self._publish()
 
     def _on_failure(self, frame: RgbdFrame, e: Exception) -> None:
         log.exception("mapping frame %d failed", frame.index)
@@ -288,6 +302,8 @@ class MappingWorker(CommandServing):
                 dropped=self._feed.dropped,
                 metrics=dict(self._metrics),
                 memory_mb=rss_mb(),
+                refine_left=self._refine_left,
+                refined=self._refined,
             )
             self._last_snap = snap
             self.slot.put(snap)

@@ -110,6 +110,7 @@ class FakeMapper:
         self.steps_per_frame = 3
         self.steps_done = 0
         self.in_frame = False  # inside integrate(), between optimisation steps
+        self.refine_calls: list[int] = []  # steps asked of each refine() call
         self.on_iteration: Callable[[], None] | None = None
 
     @property
@@ -191,6 +192,15 @@ class FakeMapper:
         parts = {key: self._voxels[np.all(chunk_of == np.array(key), axis=1)] for key in sorted(self._dirty)}
         self._dirty = set()
         return FakeMeshJob(self, parts, self._version)
+
+    def refine(self, iterations: int, on_step: object = None) -> int:
+        """Refinement steps over the keyframes: none before a frame was mapped; every voxel re-meshed after."""
+        self.refine_calls.append(iterations)
+        if not self._version:
+            return 0
+        chunk_of = self._voxels // self.chunk_voxels
+        self._dirty |= {tuple(int(i) for i in k) for k in np.unique(chunk_of, axis=0)}
+        return iterations
 
     def update_mesh(self) -> None:
         job = self.mesh_job()

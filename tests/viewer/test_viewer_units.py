@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import struct
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -202,6 +203,10 @@ def test_panel_text_and_plot_data() -> None:
     np.testing.assert_array_equal(x, [0, 1, 2])
     assert np.isnan(sdf[1]) and sdf[0] == 0.1  # the log plot cannot show zero
     np.testing.assert_allclose(ms, [100, 200, 300])
+    assert "| State | mapping |" in text
+    assert "| State | refining (40 steps left) |" in progress_markdown(replace(snap, paused=True, refine_left=40))
+    assert "| State | mapping, 40 refinement steps queued |" in progress_markdown(replace(snap, refine_left=40))
+    assert "| State | finished, refined 500 steps |" in progress_markdown(replace(snap, finished=True, refined=500))
 
 
 def test_both_plots_are_logarithmic() -> None:
