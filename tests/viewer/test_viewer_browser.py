@@ -136,6 +136,18 @@ def test_export_downloads_a_valid_mesh(live: Live, tmp_path: Path) -> None:
     page.get_by_role("tab", name="Mapping").click()
 
 
+def test_refine_button_refines_the_paused_map(live: Live) -> None:
+    page, slot = live.page, live.worker.slot
+    live.worker.submit("pause").result(10)
+    done = slot.get()[1].refined
+    page.get_by_role("tab", name="Export").click()
+    page.get_by_role("button", name="Refine map (500 steps)").click()
+    wait_until(page, lambda: slot.get()[1].refined > done, what="refinement steps")
+    page.get_by_role("tab", name="Mapping").click()
+    wait_until(page, lambda: f"refined {done + 500} steps" in page.inner_text("body"), what="the refinement done")
+    assert slot.get()[1].paused and not live.worker.errors
+
+
 def test_second_browser_sees_the_same_scene(live: Live) -> None:
     page2 = live.browser.new_page(viewport={"width": 640, "height": 480})
     wire2 = WireRecorder().attach(page2)
