@@ -210,7 +210,9 @@ class MappingConfig:
     mesh_observed_only: bool = True
     """Meshing leaves out faces with no measured depth within about 1-4 cm (no observed voxel/8 cell in the 3x3x3
     cells around them): behind observed surfaces and in gaps nobody saw into, priors and residual can close the
-    gap with surfaces 3-7 cm in front of the true ones (false = mesh every zero crossing, as the paper)."""
+    gap with surfaces 3-7 cm in front of the true ones. Voxels at the edge of the view (corners without a prior)
+    are meshed too, keeping faces only where depth fell in their own cell (false = mesh every zero crossing of the
+    voxels whose corners all hold priors)."""
     chunk_voxels: int = 8
     """Leaf voxels per mesh-chunk edge (chunks are re-meshed only when touched)."""
     mesh_every: int = 0
