@@ -129,9 +129,7 @@ class Mapper:
         done = 0
         while done < iterations and n_frames > 0:
             frames = [self.keyframe_rays[i] for i in pick.choice(len(self.keyframe_rays), n_frames, replace=False)]
-            with timer("sampling"):
-                samples, batch = self._samples(frames)
-            self._step(samples, batch, timer)
+            self._step(frames, timer)
             done += 1
             if on_step is not None:
                 on_step()
@@ -167,9 +165,7 @@ class Mapper:
         above = 0
         terms: dict[str, torch.Tensor] = {}
         for it in range(self.cfg.max_iters):
-            with timer("sampling"):
-                samples, batch = self._samples(frames)
-            terms = self._step(samples, batch, timer)
+            terms = self._step(frames, timer)
             if self.on_iteration is not None:
                 self.on_iteration()
             loss = float(terms["total"])
@@ -192,8 +188,11 @@ class Mapper:
         )
         return samples, batch
 
-    def _step(self, samples: Samples, batch: RayBatch, timer: StageTimer) -> dict[str, torch.Tensor]:
-        """One Adam step on the four losses; colour is evaluated only where the render weights matter."""
+    def _step(self, frames: list[FrameRays], timer: StageTimer) -> dict[str, torch.Tensor]:
+        """One Adam step on the four losses over a batch of rays from `frames`; colour is evaluated only where the
+        render weights matter."""
+        with timer("sampling"):
+            samples, batch = self._samples(frames)
         if samples.t.numel() == 0:
             return {"total": torch.zeros(())}
         with timer("forward"):
