@@ -123,12 +123,13 @@ class Mapper:
         """Optimise the finished map `iterations` more steps, each on rays from K + 1 keyframes drawn at random
         (no early ending; `on_step` after each), and mark every voxel for re-meshing. Returns the steps taken (0
         without keyframes)."""
-        pick = np.random.default_rng(self.cfg.seed + self.frames_done)
         timer = StageTimer()
-        n_frames = min(self.cfg.n_keyframes + 1, len(self.keyframe_rays))
+        n_keyframes = len(self.keyframe_rays)
+        n_frames = min(self.cfg.n_keyframes + 1, n_keyframes)
         done = 0
         while done < iterations and n_frames > 0:
-            frames = [self.keyframe_rays[i] for i in pick.choice(len(self.keyframe_rays), n_frames, replace=False)]
+            picked = torch.randperm(n_keyframes, generator=self.rng)[:n_frames]  # the ray sampler's generator
+            frames = [self.keyframe_rays[i] for i in picked.tolist()]
             self._step(frames, timer)
             done += 1
             if on_step is not None:

@@ -112,6 +112,26 @@ def test_refinement_over_the_keyframes_improves_an_undertrained_map() -> None:
     assert mapper.touched.all()  # everything is re-meshed from the refined field
 
 
+def test_refinement_called_in_slices_draws_new_keyframe_sets() -> None:
+    """The dashboard refines a few steps at a time: each call must go on drawing, not repeat the last call's sets."""
+    scene = Scene("sphere", center=np.zeros(3), radius=0.4)
+    mapper = Mapper(small_cfg(max_iters=1, rays_per_iter=256, keyframe_iou=1.0, n_keyframes=2))
+    for i, T in enumerate(orbit(scene, 6, 1.4, 0.5, scene.center)):
+        mapper.integrate(scene.frame(i, T, width=48, height=36))
+    assert len(mapper.keyframe_rays) == 6
+    drawn: list[tuple[int, ...]] = []
+    step = mapper._step
+
+    def recording_step(frames: list, timer: object) -> object:
+        drawn.append(tuple(sorted(next(i for i, k in enumerate(mapper.keyframe_rays) if k is f) for f in frames)))
+        return step(frames, timer)  # type: ignore[arg-type]
+
+    mapper._step = recording_step  # type: ignore[method-assign]
+    assert mapper.refine(4) == 4 and mapper.refine(4) == 4
+    assert all(len(set(d)) == 3 for d in drawn)  # K + 1 distinct keyframes a step
+    assert drawn[:4] != drawn[4:] and len(set(drawn)) > 4
+
+
 def test_checkpoint_round_trip_reproduces_renders_and_continues(tmp_path: Path) -> None:
     scene = Scene("sphere", radius=0.4)
     mapper = Mapper(small_cfg(max_iters=3))
