@@ -121,12 +121,12 @@ class MeshThread:
             with self._cond:
                 if required:
                     self._unpublished_required = True
-                elif not self._unpublished:
-                    self._hold_until = time.monotonic() + self._period()
-                self._unpublished = True
-                if not required:
+                else:  # the required passes are done: callers waiting in catch_up go on
+                    if not self._unpublished:
+                        self._hold_until = time.monotonic() + self._period()
                     self._required_since = None
                     self._cond.notify_all()
+                self._unpublished = True
             self._flush()
 
         try:
