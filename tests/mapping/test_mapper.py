@@ -13,6 +13,7 @@ from h2viz.config import MappingConfig
 from h2viz.geometry import look_at
 from h2viz.mapping.checkpoint import load_checkpoint, save_checkpoint
 from h2viz.mapping.mapper import Mapper
+from h2viz.types import RgbdFrame
 from tests.mapping.analytic import Scene, orbit
 
 torch.set_num_threads(2)
@@ -48,18 +49,22 @@ def test_priors_alone_put_a_sphere_within_a_few_millimetres() -> None:
     assert np.median(err) < 0.007 and np.percentile(err, 90) < 0.015  # projective priors, oblique views
 
 
-def test_training_makes_rendered_depth_and_colour_match_a_box_room() -> None:
+def room_views(n: int) -> tuple[Scene, list[RgbdFrame]]:
+    """The box room seen from n cameras near its middle, each looking at a wall (64x48 frames)."""
     scene = Scene("room", center=np.array([0.0, 0.0, 1.0]))
     target = np.array([0.0, 0.0, 0.9])
-    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
     poses = [
         look_at(
             target + 0.3 * np.array([np.cos(a), np.sin(a), 0.3]),
             target + 2 * np.array([np.cos(a + 2), np.sin(a + 2), -0.2]),
         )
-        for a in angles
+        for a in np.linspace(0, 2 * np.pi, n, endpoint=False)
     ]
-    frames = [scene.frame(i, T, width=64, height=48) for i, T in enumerate(poses)]
+    return scene, [scene.frame(i, T, width=64, height=48) for i, T in enumerate(poses)]
+
+
+def test_training_makes_rendered_depth_and_colour_match_a_box_room() -> None:
+    scene, frames = room_views(8)
     mapper = Mapper(small_cfg(max_iters=10, early_ending=False, rays_per_iter=768))
     for _ in range(3):  # the sequence seen three times, as a longer scan would
         for f in frames:
@@ -78,16 +83,7 @@ def test_training_makes_rendered_depth_and_colour_match_a_box_room() -> None:
 
 
 def test_refinement_over_the_keyframes_improves_an_undertrained_map() -> None:
-    scene = Scene("room", center=np.array([0.0, 0.0, 1.0]))
-    target = np.array([0.0, 0.0, 0.9])
-    poses = [
-        look_at(
-            target + 0.3 * np.array([np.cos(a), np.sin(a), 0.3]),
-            target + 2 * np.array([np.cos(a + 2), np.sin(a + 2), -0.2]),
-        )
-        for a in np.linspace(0, 2 * np.pi, 6, endpoint=False)
-    ]
-    frames = [scene.frame(i, T, width=64, height=48) for i, T in enumerate(poses)]
+    _, frames = room_views(6)
     mapper = Mapper(small_cfg(max_iters=1, rays_per_iter=768, keyframe_iou=1.0))  # every frame a keyframe
     assert mapper.refine(5) == 0  # nothing to refine yet
     for f in frames:
