@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from h2viz.config import MappingConfig
+from h2viz.mapping.bf16 import decode_bf16, use_bf16
 from h2viz.mapping.encoding import HashGrid
 from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.octree import VoxelOctree
@@ -45,6 +46,7 @@ class HybridField(nn.Module):
             last.bias.zero_()
         self.voxel_size_m = cfg.voxel_size_m
         self.kernels = cfg.kernels
+        self.color_bf16 = use_bf16(cfg.color_precision)  # applies on the CPU only
         self.use_residual = True
         self.residual_bound = float(cfg.residual_bound) if cfg.priors else 0.0  # tr units, 0 = unbounded
         # Corners without a prior start as free space at the truncation distance: a zero would put a
@@ -107,7 +109,10 @@ class HybridField(nn.Module):
 
     def color(self, points: torch.Tensor) -> torch.Tensor:
         """RGB in [0,1] (N,3)."""
-        return torch.sigmoid(self._decode(self.color_mlp, self.color_grid(points)))
+        features = self.color_grid(points)  # (N, L*F)
+        if self.color_bf16 and features.device.type == "cpu":
+            return torch.sigmoid(decode_bf16(self.color_mlp, features))
+        return torch.sigmoid(self._decode(self.color_mlp, features))
 
     def forward(self, points: torch.Tensor, voxel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.sdf(points, voxel), self.color(points)
