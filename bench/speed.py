@@ -153,7 +153,7 @@ def report(runs: list[Run], args: argparse.Namespace, load: tuple[float, float])
         "- quality: bench/quality.py's evaluation; Acc/Comp/Comp ratio (5 cm) against the ground-truth mesh"
         f" (synthetic only), depth L1 and PSNR on {'/'.join(map(str, views)) or '-'} training views;"
         " h2viz renders its field, tsdf its mesh",
-        f"- hash-grid kernels: {', '.join(kernels) or '-'}; torch/numba threads: {', '.join(map(str, threads)) or '-'};"
+        f"- kernels: {' | '.join(kernels) or '-'}; torch/numba threads: {', '.join(map(str, threads)) or '-'};"
         f" 1-min load average {load[0]:.1f} before, {load[1]:.1f} after (other jobs on the machine inflate times)",
         "",
         f"command: {command_line('bench/speed.py')}",

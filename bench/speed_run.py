@@ -88,6 +88,8 @@ class H2vizMethod:
         fused = cfg.mapping.kernels == "auto" and self.mapper.device.type == "cpu"
         fused = fused and kernel_module("hash_numba") is not None
         self.kernels = "fused numba" if fused else "pure torch"
+        if self.mapper.field.color_bf16 and self.mapper.device.type == "cpu":
+            self.kernels += ", bfloat16 colour decoder"
 
     def integrate(self, frame: RgbdFrame) -> FrameStats:
         return self.mapper.integrate(frame)
