@@ -127,19 +127,27 @@ def surface(lat: ChunkLattice, values: np.ndarray, spacing_m: float) -> tuple[Ch
 
 
 def kept_faces(
-    surface: tuple[ChunkKey, np.ndarray, np.ndarray], keep_fn: KeepFn
-) -> tuple[ChunkKey, np.ndarray, np.ndarray] | None:
-    """The surface without the faces whose centroid `keep_fn` rejects (and without the vertices only they used),
-    or None when no face is left."""
-    key, vertices, faces = surface
-    keep = np.asarray(keep_fn(vertices[faces].mean(axis=1)), dtype=bool)  # (M,)
-    if keep.all():
-        return surface
-    faces = faces[keep]
-    if len(faces) == 0:
-        return None
-    used, inverse = np.unique(faces, return_inverse=True)
-    return key, vertices[used], inverse.reshape(faces.shape).astype(faces.dtype)
+    surfaces: list[tuple[ChunkKey, np.ndarray, np.ndarray]], keep_fn: KeepFn
+) -> list[tuple[ChunkKey, np.ndarray, np.ndarray]]:
+    """The surfaces without the faces whose centroid `keep_fn` rejects (and without the vertices only they used),
+    leaving out surfaces with no face left; one keep_fn call for all of them."""
+    if not surfaces:
+        return []
+    centroids = np.concatenate([vertices[faces].mean(axis=1) for _, vertices, faces in surfaces])  # (M,3)
+    keep = np.asarray(keep_fn(centroids), dtype=bool)  # (M,)
+    ends = np.cumsum([len(faces) for _, _, faces in surfaces])
+    out = []
+    for surface, kept in zip(surfaces, np.split(keep, ends[:-1]), strict=True):
+        key, vertices, faces = surface
+        if kept.all():
+            out.append(surface)
+        elif kept.any():
+            faces = faces[kept]
+            used = np.zeros(len(vertices), dtype=bool)
+            used[faces] = True
+            new_index = (np.cumsum(used) - 1).astype(faces.dtype)  # old vertex -> its row among the used ones
+            out.append((key, vertices[used], new_index[faces]))
+    return out
 
 
 def coloured(

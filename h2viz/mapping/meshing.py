@@ -221,7 +221,7 @@ class ChunkedMesher:
         values = sample_lattices(lattices, ids, need, caches, spacing_m, job.sdf_fn, chunk_cells, job.faces, outside)
         surfaces = [s for lat, v in zip(lattices, values, strict=True) if (s := surface(lat, v, spacing_m))]
         if job.keep_fn is not None:
-            surfaces = [s for surf in surfaces if (s := kept_faces(surf, job.keep_fn))]
+            surfaces = kept_faces(surfaces, job.keep_fn)
         chunks = {k: c for k, c in self._chunks.items() if k not in set(keys)}
         keep = {k: self._chunks[k] for k, mode in items if mode is not Eval.WHOLE and k in self._chunks}
         chunks.update(coloured(surfaces, job.color_fn, job.version, keep))  # unmoved vertices keep their colour
