@@ -13,6 +13,7 @@ import pytest
 import trimesh
 
 from h2viz.errors import ConfigError, H2vizError
+from h2viz.mapping.mesh_passes import kept_faces
 from h2viz.mapping.meshing import ChunkedMesher, MeshingError, export_mesh, merge_chunks
 
 VS = 0.1  # voxel size, metres
@@ -477,3 +478,24 @@ def test_packed_rows_unpack_to_themselves() -> None:
     keys = pack_rows(rows, lo, hi)
     assert keys is not None
     np.testing.assert_array_equal(unpack_rows(keys, lo, hi), rows)
+
+
+def test_kept_faces_filters_every_surface_of_a_pass_in_one_call() -> None:
+    """Three strips of two triangles at x = 0, 10, 20: all kept, one face kept, none kept."""
+    square = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
+    faces = np.array([[0, 1, 2], [1, 3, 2]], np.int64)
+    surfaces = [((i, 0, 0), square + np.float32([10 * i, 0, 0]), faces) for i in range(3)]
+    calls: list[int] = []
+
+    def keep(centroids: np.ndarray) -> np.ndarray:
+        calls.append(len(centroids))
+        return (centroids[:, 0] < 10) | ((centroids[:, 0] < 20) & (centroids[:, 1] < 0.5))
+
+    out = kept_faces(surfaces, keep)
+    assert calls == [6]
+    assert [key for key, _, _ in out] == [(0, 0, 0), (1, 0, 0)]
+    assert out[0] is surfaces[0]
+    _, vertices, kept = out[1]
+    np.testing.assert_array_equal(vertices, square[:3] + np.float32([10, 0, 0]))  # the vertex only face 2 used goes
+    np.testing.assert_array_equal(kept, [[0, 1, 2]])
+    assert kept_faces([], keep) == []
