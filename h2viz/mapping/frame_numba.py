@@ -56,3 +56,52 @@ def frame_rays(
     with parallel_region():
         _rays_kernel(depth, np.ascontiguousarray(rgb).reshape(-1, 3), valid, w, K32, T32, *out, points)
     return (valid, *out, points)
+
+
+@njit
+def _gather_kernel(
+    pick: np.ndarray,
+    valid: np.ndarray,
+    depth: np.ndarray,
+    rgb: np.ndarray,
+    width: int,
+    K: np.ndarray,
+    R: np.ndarray,
+    origin: np.ndarray,
+    start: int,
+    origins: np.ndarray,
+    dirs: np.ndarray,
+    out_rgb: np.ndarray,
+    out_depth: np.ndarray,
+) -> None:
+    """Rows start.. of a ray batch from one frame's picked rays pick (n,) into its valid pixels (P,), their depth
+    (P,) and rgb (P,3) uint8: the origin, z-normalised world direction (camera axes R (3,3)), colour in [0,1]
+    and depth, in float32 as `FrameRays.sample` computes them."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    for i in range(pick.shape[0]):
+        j = pick[i]
+        pix = valid[j]
+        x = (np.float32(pix % width) - cx) / fx
+        y = (np.float32(pix // width) - cy) / fy
+        r = start + i
+        for a in range(3):
+            origins[r, a] = origin[a]
+            dirs[r, a] = x * R[a, 0] + y * R[a, 1] + R[a, 2]
+            out_rgb[r, a] = np.float32(rgb[j, a]) / np.float32(255.0)
+        out_depth[r] = depth[j]
+
+
+def gather_rays(
+    picks: list[np.ndarray], frames: list[tuple[np.ndarray, ...]], widths: list[int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """origins, dirs, rgb (R,3) float32 and depth (R,) of the rays picked from each frame, one frame after the
+    other; frames[i] = (valid (P,) int32, depth (P,) float32, rgb (P,3) uint8, K (3,3), rotation (3,3), origin (3,))
+    with K, rotation and origin float32. One compiled call per frame instead of ~15 torch operations."""
+    total = sum(len(p) for p in picks)
+    origins, dirs, rgb = (np.empty((total, 3), np.float32) for _ in range(3))
+    depth = np.empty(total, np.float32)
+    start = 0
+    for pick, frame, width in zip(picks, frames, widths, strict=True):
+        _gather_kernel(pick, *frame[:3], width, *frame[3:], start, origins, dirs, rgb, depth)
+        start += len(pick)
+    return origins, dirs, rgb, depth

@@ -22,7 +22,7 @@ from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.optim import GrowingAdam
 from h2viz.mapping.priors import PriorInitializer
 from h2viz.mapping.raycast import RenderParams, locate, render_image
-from h2viz.mapping.rays import FrameRays, RayBatch
+from h2viz.mapping.rays import FrameRays, RayBatch, sample_frames
 from h2viz.mapping.rendering import composite, live_samples, render_weights
 from h2viz.mapping.sampling import BandLayout, Samples, band_samples, sample_rays
 from h2viz.mapping.support import ObservedCells
@@ -158,7 +158,7 @@ class Mapper:
 
     def _batch(self, frames: list[FrameRays]) -> RayBatch:
         n = max(1, self.cfg.rays_per_iter // len(frames))
-        return RayBatch.cat([f.sample(n, self.rng) for f in frames if len(f)])
+        return sample_frames(frames, n, self.rng, fused=self.cfg.kernels == "auto")
 
     def _optimise(self, frames: list[FrameRays], timer: StageTimer) -> tuple[int, dict[str, float]]:
         """Up to max_iters Adam steps; stop when the loss exceeds its running mean twice in a row."""

@@ -19,6 +19,11 @@ class RayBatch:
     depth: torch.Tensor  # (R,) metres
 
     @staticmethod
+    def empty() -> RayBatch:
+        """A batch of no rays."""
+        return RayBatch(torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0))
+
+    @staticmethod
     def cat(batches: list[RayBatch]) -> RayBatch:
         return RayBatch(*(torch.cat([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "rgb", "depth")))
 
@@ -88,6 +93,11 @@ class FrameRays:
             depth=self.depth[pick],
         )
 
+    def kernel_arrays(self) -> tuple[np.ndarray, ...]:
+        """(valid, depth, rgb, K, rotation, origin) as the CPU arrays `frame_numba.gather_rays` reads."""
+        K = np.asarray(self.K, dtype=np.float32)
+        return self.valid.numpy(), self.depth.numpy(), self.rgb.numpy(), K, self.rotation.numpy(), self.origin.numpy()
+
     def voxel_points(self, stride: int = 4) -> np.ndarray:
         """A subsample of this frame's world points (N,3) for visibility bookkeeping."""
         pts = self.origin + self.directions(self.valid[::stride]) * self.depth[::stride, None]
@@ -107,3 +117,17 @@ def pixel_rays(
     T = torch.from_numpy(np.asarray(T_world_camera)).to(device, torch.float32)
     dirs = d_cam @ T[:3, :3].T
     return T[:3, 3].expand_as(dirs), dirs
+
+
+def sample_frames(frames: list[FrameRays], n: int, generator: torch.Generator, fused: bool = True) -> RayBatch:
+    """n random valid-depth rays from each frame that has any, one frame after the other: the same rays as
+    concatenating `FrameRays.sample` (same generator draws), gathered by one compiled call per frame on the CPU
+    when `fused` (else through that torch code)."""
+    frames = [f for f in frames if len(f)]
+    cpu = fused and all(f.depth.device.type == "cpu" for f in frames)
+    kernels = kernel_module("frame_numba") if cpu else None
+    if kernels is None or not frames:
+        return RayBatch.cat([f.sample(n, generator) for f in frames]) if frames else RayBatch.empty()
+    picks = [torch.randint(len(f), (n,), generator=generator).numpy() for f in frames]
+    arrays = kernels.gather_rays(picks, [f.kernel_arrays() for f in frames], [f.shape[1] for f in frames])
+    return RayBatch(*(torch.from_numpy(a) for a in arrays))

@@ -8,7 +8,7 @@ import torch
 
 import h2viz.mapping.rays as rays_module
 from h2viz.geometry import backproject
-from h2viz.mapping.rays import FrameRays
+from h2viz.mapping.rays import FrameRays, RayBatch, sample_frames
 from h2viz.types import RgbdFrame
 
 pytest.importorskip("numba")
@@ -63,3 +63,27 @@ def test_frame_rays_keep_11_bytes_a_pixel_and_sampled_rays_reach_their_points() 
     pixel = rays.valid[nearest].numpy()
     np.testing.assert_allclose(batch.depth.numpy(), frame.depth_m.reshape(-1)[pixel])
     np.testing.assert_allclose(batch.rgb.numpy() * 255, frame.rgb.reshape(-1, 3)[pixel], atol=1e-3)
+
+
+def test_sampling_several_frames_gives_the_rays_of_the_torch_path() -> None:
+    """The compiled gather draws the same picks from the generator and computes the same rays as concatenating
+    FrameRays.sample; frames without valid depth give no rays."""
+    frames = [_frame()]
+    for k, angle in enumerate((0.2, -1.1)):
+        f = _frame()
+        T = f.T_world_camera.copy()
+        T[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+        T[:3, 3] += k
+        frames.append(RgbdFrame(index=8 + k, timestamp=0.0, rgb=f.rgb, depth_m=f.depth_m[::-1].copy(), K=f.K,
+                                T_world_camera=T))  # fmt: skip
+    empty = RgbdFrame(index=20, timestamp=0.0, rgb=frames[0].rgb, depth_m=np.zeros((48, 64), np.float32),
+                      K=frames[0].K, T_world_camera=np.eye(4))  # fmt: skip
+    rays = [FrameRays(f, torch.device("cpu")) for f in (frames[0], empty, *frames[1:])]
+    fast = sample_frames(rays, 300, torch.Generator().manual_seed(5))
+    ref = sample_frames(rays, 300, torch.Generator().manual_seed(5), fused=False)
+    assert fast.origins.shape == (900, 3) and fast.depth.shape == (900,)
+    for name in ("origins", "dirs", "rgb", "depth"):
+        torch.testing.assert_close(getattr(fast, name), getattr(ref, name), rtol=1e-6, atol=1e-6)
+    by_hand = RayBatch.cat([r.sample(300, g) for g in [torch.Generator().manual_seed(5)] for r in rays if len(r)])
+    torch.testing.assert_close(fast.rgb, by_hand.rgb, rtol=0, atol=0)
+    assert len(sample_frames([rays[1]], 10, torch.Generator()).depth) == 0
