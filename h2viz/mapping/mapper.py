@@ -77,7 +77,7 @@ class Mapper:
         """Adam for the growing corner priors (ours) and for hash tables and decoders (torch's fused one:
         a dense step over both 2^19-entry tables costs ~4 ms on CPU, less than a lazy update of the few
         hundred thousand rows a step touches, whose random accesses cost ~15x more per row)."""
-        opt = GrowingAdam(self.cfg.lr)
+        opt = GrowingAdam(self.cfg.lr, fused=self.cfg.kernels == "auto")
         if self.cfg.priors:
             opt.add("priors", lambda: self.field.priors, sparse=True)  # only corners with gradient move
         fused = {"fused": True} if self.device.type in ("cpu", "cuda") else {}

@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 import torch
 
+from h2viz.mapping.kernels import kernel_module
+
 
 @dataclass
 class _Slot:
@@ -26,8 +28,11 @@ class _Slot:
 class GrowingAdam:
     """Adam (betas 0.9/0.99, eps 1e-15) over tensors looked up by name each step."""
 
-    def __init__(self, lr: float, betas: tuple[float, float] = (0.9, 0.99), eps: float = 1e-15) -> None:
+    def __init__(
+        self, lr: float, betas: tuple[float, float] = (0.9, 0.99), eps: float = 1e-15, fused: bool = True
+    ) -> None:
         self.lr, self.betas, self.eps = lr, betas, eps
+        self.fused = fused  # row-sparse steps through the compiled kernel on the CPU (else the torch code)
         self.slots: dict[str, _Slot] = {}
 
     def add(self, name: str, get: Callable[[], torch.Tensor], sparse: bool = False) -> None:
@@ -61,8 +66,9 @@ class GrowingAdam:
             if slot.sparse:
                 width = p.shape[-1] if p.dim() > 1 else 1
                 P, G, M, V = (x.view(-1, width) for x in (p, g, slot.m, slot.v))  # (rows, width)
-                rows = torch.nonzero(G.abs().sum(1) > 0)[:, 0]
-                self._update(P, M, V, G, rows, slot.steps, b1, b2)
+                if not self._fused_update(P, G, M, V, slot.steps):
+                    rows = torch.nonzero(G.abs().sum(1) > 0)[:, 0]
+                    self._update(P, M, V, G, rows, slot.steps, b1, b2)
             else:
                 slot.steps += 1
                 slot.m.mul_(b1).add_(g, alpha=1 - b1)
@@ -70,6 +76,20 @@ class GrowingAdam:
                 t = float(slot.steps.item())
                 denom = (slot.v / (1 - b2**t)).sqrt_().add_(self.eps)
                 p.addcdiv_(slot.m, denom, value=-self.lr / (1 - b1**t))
+
+    def _fused_update(
+        self, p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor, steps: torch.Tensor
+    ) -> bool:
+        """The row-sparse step through the compiled kernel (h2viz.mapping.optim_numba) when it applies: contiguous
+        float32 CPU tensors and numba installed. False when it does not (the torch code runs instead)."""
+        kernels = kernel_module("optim_numba") if self.fused else None
+        tensors = (p, g, m, v, steps)
+        if kernels is None or any(t.device.type != "cpu" or t.dtype != torch.float32 for t in tensors):
+            return False
+        if not all(t.is_contiguous() for t in tensors):
+            return False
+        kernels.sparse_adam(*(t.detach().numpy() for t in tensors), self.lr, *self.betas, self.eps)
+        return True
 
     def _update(
         self,
