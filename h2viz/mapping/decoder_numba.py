@@ -3,9 +3,9 @@
 The decoder is narrow (8 -> 64 -> 1 by default) and runs on every training sample, so through torch it is a
 chain of small matrix products that each stream an (N, 64) activation through memory several times. Here one
 pass per sample keeps the 64 hidden values in registers: the forward pass writes y only; the backward pass
-recomputes the hidden layer and accumulates every parameter gradient per thread block, then the blocks are
-summed. `FusedDecoder` gives the same values and gradients as the torch module up to float round-off
-(tests/mapping/test_decoder_numba.py checks it against torch).
+recomputes the hidden layer and accumulates every parameter gradient per thread block (the W1 gradient GROUP
+samples at a time), then the blocks are summed. `FusedDecoder` gives the same values and gradients as the
+torch module up to float round-off (tests/mapping/test_decoder_numba.py checks it against torch).
 """
 
 from __future__ import annotations
@@ -68,6 +68,49 @@ def _forward_kernel(
         decode_range(x, w1t, b1, w2, b2, block * n // n_blocks, (block + 1) * n // n_blocks, y)
 
 
+GROUP = 4
+"""Samples whose hidden-layer gradients are added into the W1 gradient together: its (D,H) accumulators are
+loaded and stored once per group instead of once per sample (backward pass 2.9 -> 2.4-2.6 ms on 46.5k samples)."""
+
+
+@njit(inline=True)
+def _sample_backward(
+    x: np.ndarray,
+    grad_y: np.ndarray,
+    p: int,
+    w1t: np.ndarray,
+    b1: np.ndarray,
+    w2: np.ndarray,
+    h: np.ndarray,
+    dh: np.ndarray,
+    gb1: np.ndarray,
+    gw2: np.ndarray,
+    gb2: np.ndarray,
+    want_x: bool,
+    grad_x: np.ndarray,
+) -> None:
+    """Sample p's hidden-layer gradient dh (H,), its shares of the b1, W2 and b2 gradients, and grad_x[p]."""
+    _pre_activation(x, p, w1t, b1, h)  # recomputed: cheaper than storing (N,H)
+    dh[:] = ZERO
+    for o in range(w2.shape[0]):
+        g = grad_y[p, o]
+        gb2[o] += g
+        w2o, gw2o = w2[o], gw2[o]
+        for j in range(h.shape[0]):
+            alive = h[j] > ZERO
+            gw2o[j] += g * h[j] if alive else ZERO
+            dh[j] += g * w2o[j] if alive else ZERO
+    for j in range(h.shape[0]):
+        gb1[j] += dh[j]
+    if want_x:
+        for k in range(x.shape[1]):
+            acc = ZERO
+            wk = w1t[k]
+            for j in range(h.shape[0]):
+                acc += wk[j] * dh[j]
+            grad_x[p, k] = acc
+
+
 @njit(parallel=True, fastmath=True)
 def _backward_kernel(
     x: np.ndarray,
@@ -92,32 +135,25 @@ def _backward_kernel(
         gw2 = np.zeros((d_out, hidden), np.float32)
         gb2 = np.zeros(d_out, np.float32)
         h = np.empty(hidden, np.float32)
-        dh = np.empty(hidden, np.float32)
-        for p in range(block * n // n_blocks, (block + 1) * n // n_blocks):
-            _pre_activation(x, p, w1t, b1, h)  # recomputed: cheaper than storing (N,H)
-            dh[:] = ZERO
-            for o in range(d_out):
-                g = grad_y[p, o]
-                gb2[o] += g
-                w2o, gw2o = w2[o], gw2[o]
-                for j in range(hidden):
-                    alive = h[j] > ZERO
-                    gw2o[j] += g * h[j] if alive else ZERO
-                    dh[j] += g * w2o[j] if alive else ZERO
-            for j in range(hidden):
-                gb1[j] += dh[j]
-            for k in range(d_in):
-                xk = x[p, k]
-                gk = gw1t[k]
-                for j in range(hidden):
-                    gk[j] += xk * dh[j]
-            if want_x:
+        dh = np.empty((GROUP, hidden), np.float32)  # the hidden-layer gradients of a group of samples
+        start, stop = block * n // n_blocks, (block + 1) * n // n_blocks
+        for first in range(start, stop, GROUP):
+            size = min(GROUP, stop - first)
+            for q in range(size):
+                _sample_backward(x, grad_y, first + q, w1t, b1, w2, h, dh[q], gb1, gw2, gb2, want_x, grad_x)
+            if size == GROUP:
                 for k in range(d_in):
-                    acc = ZERO
-                    wk = w1t[k]
+                    x0, x1, x2, x3 = x[first, k], x[first + 1, k], x[first + 2, k], x[first + 3, k]
+                    gk = gw1t[k]
                     for j in range(hidden):
-                        acc += wk[j] * dh[j]
-                    grad_x[p, k] = acc
+                        gk[j] += x0 * dh[0, j] + x1 * dh[1, j] + x2 * dh[2, j] + x3 * dh[3, j]
+            else:  # the block's last few samples
+                for q in range(size):
+                    for k in range(d_in):
+                        xk = x[first + q, k]
+                        gk = gw1t[k]
+                        for j in range(hidden):
+                            gk[j] += xk * dh[q, j]
         g_w1t[block], g_b1[block], g_w2[block], g_b2[block] = gw1t, gb1, gw2, gb2
 
 
