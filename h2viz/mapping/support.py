@@ -113,11 +113,32 @@ class ObservedSupport:
             self._dilated = dilate(self.words, neighbours(self.index))
         return self._dilated
 
+    def dilated_rows(self, ids: np.ndarray) -> np.ndarray:
+        """dilated()[ids] (N,8) for voxel ids (N,), computed over the asked voxels' neighbourhoods only: a mesh
+        job's cost then grows with the chunks it meshes, not with the whole map."""
+        if self._dilated is not None:
+            return self._dilated[ids]
+        want = np.unique(ids)  # the x step's rows
+        nb_x = self._neighbours(want)
+        mid = _with_neighbours(want, nb_x[:, 0:2])  # the y step's rows: those and their x neighbours
+        nb_y = self._neighbours(mid)
+        base = _with_neighbours(mid, nb_y[:, 2:4])  # the z step's rows: and their y neighbours
+        nb_z = self._neighbours(base)
+        w = _z_step(self.words[base], _gather(self.words, nb_z[:, 4]), _gather(self.words, nb_z[:, 5]))
+        w = _y_step(w[np.searchsorted(base, mid)], _rows_of(w, base, nb_y[:, 2]), _rows_of(w, base, nb_y[:, 3]))
+        w = _x_step(w[np.searchsorted(mid, want)], _rows_of(w, mid, nb_x[:, 0]), _rows_of(w, mid, nb_x[:, 1]))
+        return w[np.searchsorted(want, ids)]
+
+    def _neighbours(self, ids: np.ndarray) -> np.ndarray:
+        """(N,6) ids of the face neighbours of voxels ids (N,) in FACE_DIRS order, -1 where none."""
+        coords = decode(self.keys[ids])  # (N,3)
+        return np.stack([self.index.lookup(encode(coords + d)) for d in FACE_DIRS], axis=1).reshape(-1, 6)
+
     def contains(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: points (N,3) whose cell is within one cell of an observed cell (in `strict` voxels: whose
         cell is observed)."""
         ok, vid, word, bit = _in_voxels(self.index, np.floor(np.asarray(points) / self.cell_m).astype(np.int64))
-        held = self.dilated()[vid, word]  # (N',) uint64
+        held = self.dilated_rows(vid)[np.arange(len(vid)), word]  # (N',) uint64
         if self.strict is not None:
             held = np.where(self.strict[vid], self.words[vid, word], held)
         out = np.zeros(len(ok), dtype=bool)
@@ -131,6 +152,19 @@ def neighbours(index: KeyIndex) -> np.ndarray:
     return np.stack([index.lookup(encode(coords + d)) for d in FACE_DIRS], axis=1)
 
 
+def _with_neighbours(ids: np.ndarray, nb: np.ndarray) -> np.ndarray:
+    """Sorted distinct voxel ids: ids (N,) and the existing ones of nb (N,k)."""
+    return np.unique(np.concatenate([ids, nb[nb >= 0]]))
+
+
+def _rows_of(words: np.ndarray, ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """Rows (N,8) of words (M,8), whose rows belong to the sorted voxel ids (M,), for voxels wanted (N,);
+    zeros where wanted is -1."""
+    got = words[np.searchsorted(ids, np.maximum(wanted, 0)).clip(max=len(ids) - 1)]
+    got[wanted < 0] = 0
+    return got
+
+
 def _gather(words: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """words[ids] with zeros where ids is -1: (V,8)."""
     got = words[np.maximum(ids, 0)]
@@ -142,15 +176,25 @@ def dilate(words: np.ndarray, nb: np.ndarray) -> np.ndarray:
     """One-cell dilation (3x3x3 block) of the cell bits (V,8) uint64 across voxels, nb (V,6) face neighbours."""
     if len(words) == 0:
         return words.copy()
-    one, seven, eight, fifty_six = (np.uint64(k) for k in (1, 7, 8, 56))
-    # along z (bits 8y+z of each word)
-    lo, hi = _gather(words, nb[:, 4]), _gather(words, nb[:, 5])
-    w = words | ((words << one) & ~_Z0) | ((words >> one) & ~_Z7) | ((lo & _Z7) >> seven) | ((hi & _Z0) << seven)
-    # along y (rows of 8 bits), from the z-dilated words of the y neighbours
-    lo, hi = _gather(w, nb[:, 2]), _gather(w, nb[:, 3])
-    w = w | (w << eight) | (w >> eight) | ((lo & _Y7) >> fifty_six) | ((hi & _Y0) << fifty_six)
-    # along x (words), from the yz-dilated words of the x neighbours
-    lo, hi = _gather(w, nb[:, 0]), _gather(w, nb[:, 1])
+    w = _z_step(words, _gather(words, nb[:, 4]), _gather(words, nb[:, 5]))
+    w = _y_step(w, _gather(w, nb[:, 2]), _gather(w, nb[:, 3]))  # from the z-dilated words of the y neighbours
+    return _x_step(w, _gather(w, nb[:, 0]), _gather(w, nb[:, 1]))  # from the yz-dilated words of the x neighbours
+
+
+def _z_step(w: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Dilation along z (bits 8y+z of each word) of words (N,8), given those of the -z and +z neighbours."""
+    one, seven = np.uint64(1), np.uint64(7)
+    return w | ((w << one) & ~_Z0) | ((w >> one) & ~_Z7) | ((lo & _Z7) >> seven) | ((hi & _Z0) << seven)
+
+
+def _y_step(w: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Dilation along y (rows of 8 bits) of words (N,8), given those of the -y and +y neighbours."""
+    eight, fifty_six = np.uint64(8), np.uint64(56)
+    return w | (w << eight) | (w >> eight) | ((lo & _Y7) >> fifty_six) | ((hi & _Y0) << fifty_six)
+
+
+def _x_step(w: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Dilation along x (the 8 words) of words (N,8), given those of the -x and +x neighbours."""
     out = w.copy()
     out[:, 1:] |= w[:, :-1]
     out[:, :-1] |= w[:, 1:]

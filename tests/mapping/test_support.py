@@ -115,6 +115,18 @@ def test_meshing_keeps_only_the_surface_near_observed_depth() -> None:
     assert len(np.unique(near.faces)) == len(near.vertices)  # no vertex left without a face
 
 
+def test_dilating_only_the_asked_voxels_gives_the_whole_map_dilation() -> None:
+    rng = np.random.default_rng(9)
+    octree, points = _octree(rng)
+    observed = ObservedCells(VS)
+    observed.add(octree, points.repeat(20, axis=0) + rng.normal(0.0, 0.03, size=(2400, 3)))
+    ids = rng.integers(0, octree.n_voxels, size=300)  # with repeats, in any order
+    whole = observed.snapshot(octree).dilated()
+    assert whole.any() and (whole != observed.words).any()
+    np.testing.assert_array_equal(observed.snapshot(octree).dilated_rows(ids), whole[ids])
+    assert observed.snapshot(octree).dilated_rows(np.zeros(0, np.int64)).shape == (0, 8)
+
+
 def test_cells_far_from_the_origin_are_marked_as_near_it() -> None:
     """20 km out (UTM-like poses): cell coordinates pass 2^20, where a packed key of them would wrap."""
     rng = np.random.default_rng(7)
