@@ -57,6 +57,7 @@ class Group:
     coords: np.ndarray  # (n,3) int64, sorted
     ids: np.ndarray  # (n,) int64 the caller's ids (handed to sdf_fn)
     flags: np.ndarray  # (n,) bool dirty voxels
+    n_flagged: int  # flags.sum(), counted for all chunks at once
 
 
 def group_voxels(coords: np.ndarray, ids: np.ndarray, flags: np.ndarray, chunk_voxels: int) -> dict[ChunkKey, Group]:
@@ -71,8 +72,12 @@ def group_voxels(coords: np.ndarray, ids: np.ndarray, flags: np.ndarray, chunk_v
     fresh[1:] = np.any(coords[1:] != coords[:-1], axis=1)  # drop repeated voxels
     coords, keys, ids, flags = coords[fresh], keys[fresh], ids[fresh], flags[fresh]
     starts = np.flatnonzero(np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)])
-    parts = zip(starts, *(np.split(a, starts[1:]) for a in (coords, ids, flags)), strict=True)
-    return {(int(keys[s, 0]), int(keys[s, 1]), int(keys[s, 2])): Group(c, i, f) for s, c, i, f in parts}
+    bounds = [*starts.tolist(), len(coords)]  # plain slices: np.split costs ~10 us a piece, 60 ms at 100k voxels
+    counts = np.add.reduceat(flags.astype(np.int64), starts).tolist()
+    return {
+        (k[0], k[1], k[2]): Group(coords[a:b], ids[a:b], flags[a:b], n)
+        for k, a, b, n in zip(keys[starts].tolist(), bounds[:-1], bounds[1:], counts, strict=True)
+    }
 
 
 class Update:
@@ -107,7 +112,7 @@ class Update:
         for key, mode in items:
             batch.append((key, mode))
             g = self.groups[key]
-            voxels = {Eval.NEW: 1, Eval.DIRTY: 1 + int(g.flags.sum()), Eval.WHOLE: len(g.coords)}[mode]
+            voxels = {Eval.NEW: 1, Eval.DIRTY: 1 + g.n_flagged, Eval.WHOLE: len(g.coords)}[mode]
             n_points += voxels * self.resolution**3
             if n_points >= limit:
                 yield batch

@@ -191,7 +191,7 @@ class ChunkedMesher:
         else:
             asked = [k for k in dict.fromkeys(tuple(int(i) for i in k) for k in dirty) if k in job.groups]
         changed = [k for k in job.groups if self._meshed.get(k, NEVER).signature != job.signature(k)]
-        changed.sort(key=lambda k: (not job.groups[k].flags.any(), k))  # the latest frames' chunks first
+        changed.sort(key=lambda k: (job.groups[k].n_flagged == 0, k))  # the latest frames' chunks first
         whole = set(asked)
         new = [(k, Eval.WHOLE if k in whole else Eval.NEW) for k in changed]
         return new + [(k, Eval.WHOLE) for k in asked if k not in set(changed)]  # type: ignore[misc]
@@ -200,7 +200,7 @@ class ChunkedMesher:
         """Chunks with dirty voxels (most first), then those evaluated whole longest ago from an older field
         (a chunk that only had its new points evaluated counts as such), leaving out `exclude`."""
         groups = job.groups
-        flagged = sorted((-int(g.flags.sum()), k) for k, g in groups.items() if k not in exclude and g.flags.any())
+        flagged = sorted((-g.n_flagged, k) for k, g in groups.items() if g.n_flagged and k not in exclude)
         old = sorted(
             (m.field_version, m.version, k)
             for k, m in self._meshed.items()
@@ -222,7 +222,8 @@ class ChunkedMesher:
         surfaces = [s for lat, v in zip(lattices, values, strict=True) if (s := surface(lat, v, spacing_m))]
         if job.keep_fn is not None:
             surfaces = kept_faces(surfaces, job.keep_fn)
-        chunks = {k: c for k, c in self._chunks.items() if k not in set(keys)}
+        replaced = set(keys)
+        chunks = {k: c for k, c in self._chunks.items() if k not in replaced}
         keep = {k: self._chunks[k] for k, mode in items if mode is not Eval.WHOLE and k in self._chunks}
         chunks.update(coloured(surfaces, job.color_fn, job.version, keep))  # unmoved vertices keep their colour
         meshed = dict(self._meshed)
