@@ -99,7 +99,6 @@ class ObservedSupport:
     words: np.ndarray  # (V,8) uint64
     strict: np.ndarray | None = None  # (V,) bool: a face there needs its own cell observed, not only a neighbour
     _index: KeyIndex | None = None
-    _dilated: np.ndarray | None = None
 
     @property
     def index(self) -> KeyIndex:
@@ -108,31 +107,27 @@ class ObservedSupport:
         return self._index
 
     def dilated(self) -> np.ndarray:
-        """(V,8) words with every cell that has an observed cell among its 26 neighbours (or itself) set."""
-        if self._dilated is None:
-            self._dilated = dilate(self.words, neighbours(self.index))
-        return self._dilated
+        """(V,8) words with every cell that has an observed cell among its 26 neighbours (or itself) set, over
+        the whole map at once (the reference for `dilated_rows`)."""
+        return dilate(self.words, neighbours(self.index, self.keys))
 
     def dilated_rows(self, ids: np.ndarray) -> np.ndarray:
         """dilated()[ids] (N,8) for voxel ids (N,), computed over the asked voxels' neighbourhoods only: a mesh
         job's cost then grows with the chunks it meshes, not with the whole map."""
-        if self._dilated is not None:
-            return self._dilated[ids]
         want = np.unique(ids)  # the x step's rows
-        nb_x = self._neighbours(want)
+        nb_x = neighbours(self.index, self.keys[want])
         mid = _with_neighbours(want, nb_x[:, 0:2])  # the y step's rows: those and their x neighbours
-        nb_y = self._neighbours(mid)
+        nb_y = neighbours(self.index, self.keys[mid])
         base = _with_neighbours(mid, nb_y[:, 2:4])  # the z step's rows: and their y neighbours
-        nb_z = self._neighbours(base)
+        nb_z = neighbours(self.index, self.keys[base])
         w = _z_step(self.words[base], _gather(self.words, nb_z[:, 4]), _gather(self.words, nb_z[:, 5]))
-        w = _y_step(w[np.searchsorted(base, mid)], _rows_of(w, base, nb_y[:, 2]), _rows_of(w, base, nb_y[:, 3]))
-        w = _x_step(w[np.searchsorted(mid, want)], _rows_of(w, mid, nb_x[:, 0]), _rows_of(w, mid, nb_x[:, 1]))
+        w = _y_step(
+            w[np.searchsorted(base, mid)], _gather(w, _rows(base, nb_y[:, 2])), _gather(w, _rows(base, nb_y[:, 3]))
+        )
+        w = _x_step(
+            w[np.searchsorted(mid, want)], _gather(w, _rows(mid, nb_x[:, 0])), _gather(w, _rows(mid, nb_x[:, 1]))
+        )
         return w[np.searchsorted(want, ids)]
-
-    def _neighbours(self, ids: np.ndarray) -> np.ndarray:
-        """(N,6) ids of the face neighbours of voxels ids (N,) in FACE_DIRS order, -1 where none."""
-        coords = decode(self.keys[ids])  # (N,3)
-        return np.stack([self.index.lookup(encode(coords + d)) for d in FACE_DIRS], axis=1).reshape(-1, 6)
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: points (N,3) whose cell is within one cell of an observed cell (in `strict` voxels: whose
@@ -146,10 +141,11 @@ class ObservedSupport:
         return out
 
 
-def neighbours(index: KeyIndex) -> np.ndarray:
-    """(V,6) ids of each voxel's face neighbours in FACE_DIRS order (-x, +x, -y, +y, -z, +z), -1 where none."""
-    coords = decode(index.keys)  # (V,3)
-    return np.stack([index.lookup(encode(coords + d)) for d in FACE_DIRS], axis=1)
+def neighbours(index: KeyIndex, keys: np.ndarray) -> np.ndarray:
+    """(N,6) ids of the face neighbours of the voxels keys (N,) in FACE_DIRS order (-x, +x, -y, +y, -z, +z), -1
+    where none."""
+    coords = decode(keys)  # (N,3)
+    return np.stack([index.lookup(encode(coords + d)) for d in FACE_DIRS], axis=1).reshape(-1, 6)
 
 
 def _with_neighbours(ids: np.ndarray, nb: np.ndarray) -> np.ndarray:
@@ -157,16 +153,13 @@ def _with_neighbours(ids: np.ndarray, nb: np.ndarray) -> np.ndarray:
     return np.unique(np.concatenate([ids, nb[nb >= 0]]))
 
 
-def _rows_of(words: np.ndarray, ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
-    """Rows (N,8) of words (M,8), whose rows belong to the sorted voxel ids (M,), for voxels wanted (N,);
-    zeros where wanted is -1."""
-    got = words[np.searchsorted(ids, np.maximum(wanted, 0)).clip(max=len(ids) - 1)]
-    got[wanted < 0] = 0
-    return got
+def _rows(ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """Rows (N,) in the sorted voxel ids (M,) of the voxels wanted (N,), all among them or -1 (kept as -1)."""
+    return np.where(wanted >= 0, np.searchsorted(ids, wanted), -1)
 
 
 def _gather(words: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """words[ids] with zeros where ids is -1: (V,8)."""
+    """words[ids] with zeros where ids is -1: (N,8)."""
     got = words[np.maximum(ids, 0)]
     got[ids < 0] = 0
     return got
