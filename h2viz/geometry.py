@@ -127,3 +127,12 @@ def slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     w1 = np.where(small, alpha, np.sin(alpha * theta) / safe)
     q = w0[:, None] * q0 + w1[:, None] * q1
     return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def drop_unused_vertices(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which of n_vertices vertices the faces (M,3) use, (n_vertices,) bool, and the faces re-indexed into the
+    used vertices kept in order (vertices[used] goes with them)."""
+    used = np.zeros(n_vertices, dtype=bool)
+    used[faces] = True
+    new_index = (np.cumsum(used) - 1).astype(faces.dtype)  # old vertex -> its row among the used ones
+    return used, new_index[faces]

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from skimage.measure import marching_cubes
 
+from h2viz.geometry import drop_unused_vertices
+
 SNAP = 1e-4  # crossings closer than this (in edge lengths) to a lattice point are placed on it
 
 
@@ -168,8 +170,6 @@ def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarra
     _, first, inverse = np.unique(v.view(np.dtype((np.void, 12))).ravel(), return_index=True, return_inverse=True)
     f = inverse.reshape(-1)[faces]
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
-    used = np.zeros(len(first), dtype=bool)
-    used[f.ravel()] = True
-    remap = np.cumsum(used) - 1
+    used, f = drop_unused_vertices(len(first), f)
     source = first[used]
-    return v[source], remap[f], source
+    return v[source], f, source

@@ -10,6 +10,7 @@ from enum import Enum
 
 import numpy as np
 
+from h2viz.geometry import drop_unused_vertices
 from h2viz.mapping.lattice_values import ColorFn, FaceValues, MeshingError, SdfFn, call_field
 from h2viz.mapping.marching import ChunkLattice, march, weld, world_vertices
 from h2viz.types import MeshChunk
@@ -147,11 +148,8 @@ def kept_faces(
         if kept.all():
             out.append(surface)
         elif kept.any():
-            faces = faces[kept]
-            used = np.zeros(len(vertices), dtype=bool)
-            used[faces] = True
-            new_index = (np.cumsum(used) - 1).astype(faces.dtype)  # old vertex -> its row among the used ones
-            out.append((key, vertices[used], new_index[faces]))
+            used, faces = drop_unused_vertices(len(vertices), faces[kept])
+            out.append((key, vertices[used], faces))
     return out
 
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
+from h2viz.geometry import drop_unused_vertices
 from h2viz.sources.scene_textures import Material, albedo
 
 MAX_EDGE_M = 0.05  # longest grid edge, so vertex colours and baked light are fine enough
@@ -249,11 +250,9 @@ class MeshBuilder:
         tri = verts[faces]  # (F,3,3)
         area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
         keep = (area2 > 1e-10) & ~self.buried(verts, faces, vert_part)
-        used = np.zeros(len(verts), dtype=bool)
-        used[faces[keep]] = True
-        remap = np.cumsum(used) - 1
+        used, kept_faces = drop_unused_vertices(len(verts), faces[keep])
         return Geometry(
-            mesh=trimesh.Trimesh(verts[used], remap[faces[keep]], process=False, validate=False),
+            mesh=trimesh.Trimesh(verts[used], kept_faces, process=False, validate=False),
             normals=np.concatenate(self.normals)[used].astype(np.float64),
             face_part=np.concatenate(self.face_part)[keep],
             vert_part=vert_part[used],
