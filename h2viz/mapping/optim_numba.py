@@ -14,7 +14,7 @@ from h2viz.mapping.jit import njit
 
 
 @njit
-def _sparse_adam_kernel(
+def sparse_adam(
     p: np.ndarray,
     g: np.ndarray,
     m: np.ndarray,
@@ -25,8 +25,9 @@ def _sparse_adam_kernel(
     b2: float,
     eps: float,
 ) -> None:
-    """Adam with per-row bias correction on the rows of p, m, v (rows, width) whose gradient g (rows, width) has
-    a non-zero absolute sum; steps (rows,) counts each row's updates. float32 throughout, as the torch path."""
+    """In place: Adam with per-row bias correction on the rows of p, m, v (rows, width) whose gradient g (rows,
+    width) has a non-zero absolute sum; steps (rows,) counts each row's updates. Contiguous float32 arrays (views
+    of the torch tensors), float32 arithmetic throughout, as the torch path."""
     one = np.float32(1.0)
     b1_, b2_, lr_, eps_ = np.float32(b1), np.float32(b2), np.float32(lr), np.float32(eps)
     for r in range(p.shape[0]):
@@ -43,11 +44,3 @@ def _sparse_adam_kernel(
             m[r, c] = m[r, c] * b1_ + gr * (one - b1_)
             v[r, c] = v[r, c] * b2_ + gr * gr * (one - b2_)
             p[r, c] -= lr_ * (m[r, c] / bc1) / (np.sqrt(v[r, c] / bc2) + eps_)
-
-
-def sparse_adam(
-    p: np.ndarray, g: np.ndarray, m: np.ndarray, v: np.ndarray, steps: np.ndarray, lr: float, b1: float, b2: float,
-    eps: float,
-) -> None:  # fmt: skip
-    """In-place row-sparse Adam step on contiguous float32 (rows, width) arrays (views of the torch tensors)."""
-    _sparse_adam_kernel(p, g, m, v, steps, lr, b1, b2, eps)

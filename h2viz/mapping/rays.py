@@ -124,10 +124,12 @@ def sample_frames(frames: list[FrameRays], n: int, generator: torch.Generator, f
     concatenating `FrameRays.sample` (same generator draws), gathered by one compiled call per frame on the CPU
     when `fused` (else through that torch code)."""
     frames = [f for f in frames if len(f)]
+    if not frames:
+        return RayBatch.empty()
     cpu = fused and all(f.depth.device.type == "cpu" for f in frames)
     kernels = kernel_module("frame_numba") if cpu else None
-    if kernels is None or not frames:
-        return RayBatch.cat([f.sample(n, generator) for f in frames]) if frames else RayBatch.empty()
+    if kernels is None:
+        return RayBatch.cat([f.sample(n, generator) for f in frames])
     picks = [torch.randint(len(f), (n,), generator=generator).numpy() for f in frames]
     arrays = kernels.gather_rays(picks, [f.kernel_arrays() for f in frames], [f.shape[1] for f in frames])
     return RayBatch(*(torch.from_numpy(a) for a in arrays))
