@@ -131,11 +131,7 @@ def background_browsers(root: int) -> None:
     which Linux's autogroup scheduling treats as a peer of this process's session (an equal share of the cores
     whatever the threads' nice values, which chromium sets itself anyway): the session's autogroup goes to
     nice 19 and every thread to SCHED_IDLE."""
-    tree = _children()
-    todo = list(tree.get(root, []))
-    while todo:
-        pid = todo.pop()
-        todo += tree.get(pid, [])
+    for pid in _descendants(root, _processes()):
         if not _process_kind(pid).startswith("browser:"):
             continue
         with contextlib.suppress(OSError):  # no autogroup scheduling in this kernel, or the process ended
@@ -145,23 +141,9 @@ def background_browsers(root: int) -> None:
                 os.sched_setscheduler(int(task.name), os.SCHED_IDLE, os.sched_param(0))
 
 
-def _children() -> dict[int, list[int]]:
-    """Parent pid -> child pids, over every process."""
-    out: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except OSError:
-                continue
-            out.setdefault(ppid, []).append(int(entry.name))
-    return out
-
-
-def _tree_ticks(root: int) -> dict[str, int]:
-    """utime + stime (and that of reaped children) of every descendant process of `root`, by process kind."""
-    children: dict[int, list[int]] = {}
-    ticks: dict[int, int] = {}
+def _processes() -> dict[int, tuple[int, int]]:
+    """pid -> (parent pid, utime + stime including that of reaped children), over every process."""
+    out: dict[int, tuple[int, int]] = {}
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
@@ -169,15 +151,30 @@ def _tree_ticks(root: int) -> dict[str, int]:
             fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
         except OSError:
             continue
-        children.setdefault(int(fields[1]), []).append(int(entry.name))
-        ticks[int(entry.name)] = int(fields[11]) + int(fields[12]) + int(fields[13]) + int(fields[14])
-    out: dict[str, int] = {}
-    todo = list(children.get(root, []))
+        out[int(entry.name)] = (int(fields[1]), int(fields[11]) + int(fields[12]) + int(fields[13]) + int(fields[14]))
+    return out
+
+
+def _descendants(root: int, processes: dict[int, tuple[int, int]]) -> list[int]:
+    """Every descendant pid of `root` among `processes`."""
+    children: dict[int, list[int]] = {}
+    for pid, (ppid, _) in processes.items():
+        children.setdefault(ppid, []).append(pid)
+    out, todo = [], list(children.get(root, []))
     while todo:
         pid = todo.pop()
-        kind = _process_kind(pid)
-        out[kind] = out.get(kind, 0) + ticks.get(pid, 0)
+        out.append(pid)
         todo += children.get(pid, [])
+    return out
+
+
+def _tree_ticks(root: int) -> dict[str, int]:
+    """utime + stime (and that of reaped children) of every descendant process of `root`, by process kind."""
+    processes = _processes()
+    out: dict[str, int] = {}
+    for pid in _descendants(root, processes):
+        kind = _process_kind(pid)
+        out[kind] = out.get(kind, 0) + processes[pid][1]
     return out
 
 
