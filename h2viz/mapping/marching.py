@@ -17,6 +17,7 @@ import numpy as np
 from skimage.measure import marching_cubes
 
 from h2viz.geometry import drop_unused_vertices
+from h2viz.mapping.kernels import kernel_module
 
 SNAP = 1e-4  # crossings closer than this (in edge lengths) to a lattice point are placed on it
 
@@ -111,11 +112,9 @@ def mask_offset() -> int:
     return 1
 
 
-def march(lat: ChunkLattice, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Marching cubes (level 0) over a lattice's cells given values (N,) at its points.
-
-    Returns local vertices (N,3), faces (M,3) and the dense volume (X+1,Y+1,Z+1), or None when empty.
-    """
+def lattice_volume(lat: ChunkLattice, values: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The dense volume (X+1,Y+1,Z+1) float32 of a lattice's values (N,) and its cells (X,Y,Z) bool without those
+    with a non-finite corner; None when no cell can hold a level-0 crossing."""
     finite = np.isfinite(values)
     sampled = values if finite.all() else values[finite]
     if len(sampled) == 0 or sampled.min() > 0 or sampled.max() <= 0:
@@ -129,6 +128,18 @@ def march(lat: ChunkLattice, values: np.ndarray) -> tuple[np.ndarray, np.ndarray
         cells = cells.copy()
         for sl in corner_slices(cells.shape):
             cells &= ~bad[sl]
+    return volume, cells
+
+
+def march(lat: ChunkLattice, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Marching cubes (level 0, scikit-image) over a lattice's cells given values (N,) at its points.
+
+    Returns local vertices (N,3), faces (M,3) and the dense volume (X+1,Y+1,Z+1), or None when empty.
+    """
+    prepared = lattice_volume(lat, values)
+    if prepared is None:
+        return None
+    volume, cells = prepared
     off = mask_offset()
     mask = np.zeros(volume.shape, dtype=bool)
     mask[off : off + cells.shape[0], off : off + cells.shape[1], off : off + cells.shape[2]] = cells
@@ -137,6 +148,28 @@ def march(lat: ChunkLattice, values: np.ndarray) -> tuple[np.ndarray, np.ndarray
     except RuntimeError:  # no crossing inside the masked cells
         return None
     return verts, faces.astype(np.int64), volume
+
+
+def surface_mesh(lat: ChunkLattice, values: np.ndarray, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Welded world vertices (N,3) float32 and faces (M,3) int64 of the level-0 surface of a lattice's values
+    (N,): compiled (h2viz.mapping.marching_numba) when numba is available, else scikit-image's marching cubes
+    welded by position. Both place every crossing at the same bits."""
+    fast = kernel_module("marching_numba")
+    if fast is None:
+        marched = march(lat, values)
+        if marched is None:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
+        verts, faces, volume = marched
+        vertices, faces, _ = weld(world_vertices(verts, volume, lat.origin, spacing_m), faces)
+        return vertices, faces
+    prepared = lattice_volume(lat, values)
+    if prepared is None:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
+    vertices, faces, collapsed = fast.march_welded(*prepared, lat.origin, spacing_m, SNAP)
+    if not collapsed:
+        return vertices, faces
+    used, faces = drop_unused_vertices(len(vertices), faces)
+    return vertices[used], faces
 
 
 def world_vertices(verts: np.ndarray, volume: np.ndarray, origin: np.ndarray, spacing_m: float) -> np.ndarray:

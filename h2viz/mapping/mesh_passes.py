@@ -11,8 +11,9 @@ from enum import Enum
 import numpy as np
 
 from h2viz.geometry import drop_unused_vertices
+from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.lattice_values import ColorFn, FaceValues, MeshingError, SdfFn, call_field
-from h2viz.mapping.marching import ChunkLattice, march, weld, world_vertices
+from h2viz.mapping.marching import ChunkLattice, surface_mesh
 from h2viz.types import MeshChunk
 
 ChunkKey = tuple[int, int, int]
@@ -124,11 +125,7 @@ class Update:
 
 def surface(lat: ChunkLattice, values: np.ndarray, spacing_m: float) -> tuple[ChunkKey, np.ndarray, np.ndarray] | None:
     """(key, welded world vertices (N,3), faces (M,3)) of one chunk's lattice values, or None when empty."""
-    marched = march(lat, values)
-    if marched is None:
-        return None
-    verts, faces, volume = marched
-    vertices, faces, _ = weld(world_vertices(verts, volume, lat.origin, spacing_m), faces)
+    vertices, faces = surface_mesh(lat, values, spacing_m)
     return (lat.key, vertices, faces) if len(faces) else None
 
 
@@ -182,6 +179,9 @@ def coloured(
 
 def _same_vertex(vertices: np.ndarray, before: MeshChunk) -> np.ndarray:
     """Index (N,) of each vertex (N,3) float32 in `before.vertices` when bit-identical there, else -1."""
+    fast = kernel_module("marching_numba")
+    if fast is not None:
+        return fast.match_vertices(before.vertices, vertices)
     n_old = len(before.vertices)
     both = np.concatenate([before.vertices, vertices]).astype(np.float32) + np.float32(0.0)  # -0.0 -> +0.0
     _, first, inverse = np.unique(both.view(np.dtype((np.void, 12))).ravel(), return_index=True, return_inverse=True)
