@@ -270,9 +270,6 @@ class ViewerConfig:
     and an eighth of the field evaluations of mapping.mesh_resolution = 8, which mesh downloads use)."""
     start_paused: bool = False
     """Open with mapping paused."""
-    background_meshing: bool = True
-    """Extract the live mesh at idle CPU priority (Linux: SCHED_IDLE), in the CPU time mapping leaves; a mesh
-    job running late still gets the cores. false: normal priority (mapping slows more, meshes sooner)."""
 
 
 @dataclass

@@ -5,7 +5,6 @@ Mapper (tiny configuration) on the room and on real 7-Scenes frames."""
 from __future__ import annotations
 
 import io
-import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -604,34 +603,3 @@ def test_live_mesh_is_coarse_and_downloads_use_the_mapping_resolution(make_worke
     # twice the samples per voxel edge: about four times the triangles of the same surface
     assert 3.0 < len(full.faces) / live_faces < 5.0
     assert all(mapper.mesh_chunks()[k] is c for k, c in live.items())  # the live chunks are left as they were
-
-
-class PolicyJob(ScriptedJob):
-    """Records the CPU scheduling policy of the thread it runs on and of a thread started from it."""
-
-    def run(self, stop: Callable[[], bool], on_pass: Callable[[list, bool], None]) -> None:
-        self.policy = os.sched_getscheduler(threading.get_native_id())
-        child: list[int] = []
-        t = threading.Thread(target=lambda: child.append(os.sched_getscheduler(threading.get_native_id())))
-        t.start()
-        t.join()
-        self.child_policy = child[0]
-        super().run(stop, on_pass)
-
-
-@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
-@pytest.mark.parametrize("background", [True, False])
-def test_background_meshing_runs_jobs_at_idle_priority(background: bool) -> None:
-    """The mesh thread, and threads it starts (its OpenMP team), run at SCHED_IDLE unless told otherwise; the
-    mapping side keeps normal priority."""
-    thread = MeshThread(lambda: None, lambda: 0.0, background=background).start()
-    try:
-        job = PolicyJob("policy")
-        thread.submit(job)
-        assert thread.wait_idle(10) and job.ran == [0]
-        expected = os.SCHED_IDLE if background else os.SCHED_OTHER
-        assert job.policy == job.child_policy == expected
-        assert thread.priority == ("idle" if background else "normal")
-        assert os.sched_getscheduler(threading.get_native_id()) == os.SCHED_OTHER
-    finally:
-        thread.stop()

@@ -82,9 +82,7 @@ class MappingWorker(CommandServing):
         self._publish_lock = threading.Lock()
         self._chunks_out: dict = {}  # the chunks snapshots carry (changed only by the mesh thread's publish)
         self._last_snap: MapSnapshot | None = None
-        self.meshing = MeshThread(
-            self._publish_mesh, lambda: self.settings.mesh_update_hz, cfg.viewer.background_meshing
-        )
+        self.meshing = MeshThread(self._publish_mesh, lambda: self.settings.mesh_update_hz)
         self._gt: Any = None
         self._fatal: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="h2viz-mapping", daemon=True)

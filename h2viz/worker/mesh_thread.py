@@ -1,18 +1,11 @@
 """The meshing thread: runs the mapper's mesh jobs beside mapping and publishes their chunks, at most
 `rate_hz()` times a second. A job submitted while another one waits replaces it (covering both jobs'
 dirty voxels), and a waiting job makes the running one stop after its current pass: the newer job meshes
-from a newer field and picks up every chunk the older one left.
-
-In the background (the default), the thread runs at the lowest CPU priority: on two cores, a mesh job at
-normal priority takes a core in the middle of mapping's parallel kernels, whose other half then waits for
-it; at idle priority it uses the time mapping leaves (its Python parts, waits), and the mapping thread itself
-steps aside for a job that runs late (`catch_up`)."""
+from a newer field and picks up every chunk the older one left."""
 
 from __future__ import annotations
 
 import logging
-import os
-import sys
 import threading
 import time
 from collections import deque
@@ -40,9 +33,8 @@ class MeshThread:
     `h2viz.mapping.mesh_job.MeshJob`) one at a time; `publish()` is called after passes, no more often than
     `rate_hz()` (<= 0: no limit)."""
 
-    def __init__(self, publish: Callable[[], None], rate_hz: Callable[[], float], background: bool = True) -> None:
-        self._publish, self._rate_hz, self._background = publish, rate_hz, background
-        self.priority = "normal"  # what the thread runs at, once started: "idle", "nice 19" or "normal"
+    def __init__(self, publish: Callable[[], None], rate_hz: Callable[[], float]) -> None:
+        self._publish, self._rate_hz = publish, rate_hz
         self._cond = threading.Condition()
         self._pending: tuple[Any, float] | None = None  # (job, submitted at)
         self._running = False
@@ -103,8 +95,6 @@ class MeshThread:
 
     # -- the thread ----------------------------------------------------------------------------
     def _run(self) -> None:
-        if self._background:
-            self.priority = lower_thread_priority()
         while True:
             with self._cond:
                 while self._pending is None and not self._stopping:
@@ -183,23 +173,3 @@ class MeshThread:
             log.exception("publishing the mesh failed")
         with self._cond:
             self._cond.notify_all()
-
-
-def lower_thread_priority() -> str:
-    """Give the calling thread, and the threads it starts from now on (its OpenMP team), the lowest CPU priority
-    an unprivileged process can set: SCHED_IDLE on Linux, else nice 19 where nice is per thread. Returns what
-    applies now: "idle", "nice 19" or "normal"."""
-    tid = threading.get_native_id()
-    if hasattr(os, "sched_setscheduler") and hasattr(os, "SCHED_IDLE"):
-        try:
-            os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
-            return "idle"
-        except OSError:  # e.g. a sandbox that forbids it
-            log.debug("SCHED_IDLE refused for the meshing thread", exc_info=True)
-    if sys.platform.startswith("linux"):
-        try:
-            os.setpriority(os.PRIO_PROCESS, tid, 19)
-            return "nice 19"
-        except OSError:
-            log.debug("nice 19 refused for the meshing thread", exc_info=True)
-    return "normal"
