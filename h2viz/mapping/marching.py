@@ -46,6 +46,11 @@ def chunk_lattice(
     """Cells and needed lattice points of one chunk's allocated voxels (V,3) (global voxel coords); `flags`
     (V,) marks voxels whose points are reported in `point_flagged`."""
     lo = voxels.min(axis=0)
+    fast = kernel_module("marching_numba")
+    if fast is not None:
+        marks = np.zeros(len(voxels), dtype=bool) if flags is None else flags
+        cells, points, voxel, flagged = fast.lattice_arrays(voxels - lo, voxels.max(axis=0) - lo + 1, resolution, marks)
+        return ChunkLattice(key, lo * resolution, cells, points, voxel, flagged)
     rows = np.full(voxels.max(axis=0) - lo + 1, -1, dtype=np.int32)  # voxel row per occupied voxel cell
     rows[tuple((voxels - lo).T)] = np.arange(len(voxels), dtype=np.int32)
     cell_rows = rows.repeat(resolution, 0).repeat(resolution, 1).repeat(resolution, 2)  # (X,Y,Z)

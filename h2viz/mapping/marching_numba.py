@@ -173,3 +173,58 @@ def match_vertices(old: np.ndarray, new: np.ndarray) -> np.ndarray:
     0.0 count as equal), else -1."""
     bits = lambda v: (np.ascontiguousarray(v, dtype=np.float32) + np.float32(0.0)).view(np.uint32)  # noqa: E731
     return _match_kernel(bits(old), bits(new))
+
+
+@njit
+def _lattice_kernel(
+    local: np.ndarray, dims: np.ndarray, resolution: int, flags: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`marching.chunk_lattice` for voxels at local coords (V,3) in a box of `dims` (3,) voxels: cells (X,Y,Z)
+    bool, points (N,3) int64 in C order, each point's voxel row (N,) (that of its cell at the largest corner
+    offset, as the reference's last write) and whether a cell of a flagged voxel has it as a corner (N,)."""
+    r = resolution
+    rows = np.full((dims[0], dims[1], dims[2]), -1, dtype=np.int64)
+    for i in range(len(local)):
+        rows[local[i, 0], local[i, 1], local[i, 2]] = i
+    cells = np.zeros((dims[0] * r, dims[1] * r, dims[2] * r), dtype=np.bool_)
+    used = np.zeros((dims[0] * r + 1, dims[1] * r + 1, dims[2] * r + 1), dtype=np.bool_)
+    for i in range(len(local)):
+        x0, y0, z0 = local[i, 0] * r, local[i, 1] * r, local[i, 2] * r
+        cells[x0 : x0 + r, y0 : y0 + r, z0 : z0 + r] = True
+        used[x0 : x0 + r + 1, y0 : y0 + r + 1, z0 : z0 + r + 1] = True
+    n = 0
+    for flag in used.ravel():
+        n += flag
+    points = np.empty((n, 3), dtype=np.int64)
+    point_voxel = np.empty(n, dtype=np.int64)
+    point_flagged = np.zeros(n, dtype=np.bool_)
+    nx, ny, nz = cells.shape
+    k = 0
+    for x in range(nx + 1):
+        for y in range(ny + 1):
+            for z in range(nz + 1):
+                if not used[x, y, z]:
+                    continue
+                points[k, 0], points[k, 1], points[k, 2] = x, y, z
+                point_voxel[k] = -1
+                for o in range(7, -1, -1):  # the cells this point is a corner of
+                    cx, cy, cz = x - ((o >> 2) & 1), y - ((o >> 1) & 1), z - (o & 1)
+                    if cx < 0 or cy < 0 or cz < 0 or cx >= nx or cy >= ny or cz >= nz or not cells[cx, cy, cz]:
+                        continue
+                    row = rows[cx // r, cy // r, cz // r]
+                    if point_voxel[k] < 0:
+                        point_voxel[k] = row
+                    if flags[row]:
+                        point_flagged[k] = True
+                k += 1
+    return cells, points, point_voxel, point_flagged
+
+
+def lattice_arrays(
+    local: np.ndarray, dims: np.ndarray, resolution: int, flags: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """See `_lattice_kernel`."""
+    return _lattice_kernel(
+        np.ascontiguousarray(local, dtype=np.int64), np.asarray(dims, dtype=np.int64), int(resolution),
+        np.ascontiguousarray(flags, dtype=np.bool_),
+    )  # fmt: skip

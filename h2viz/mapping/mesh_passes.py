@@ -136,7 +136,10 @@ def kept_faces(
     leaving out surfaces with no face left; one keep_fn call for all of them."""
     if not surfaces:
         return []
-    centroids = np.concatenate([vertices[faces].mean(axis=1) for _, vertices, faces in surfaces])  # (M,3)
+    offsets = np.cumsum([0] + [len(v) for _, v, _ in surfaces[:-1]])
+    points = np.concatenate([v for _, v, _ in surfaces])  # (N,3) every surface's vertices
+    corners = np.concatenate([f + o for (_, _, f), o in zip(surfaces, offsets, strict=True)])  # (M,3) into points
+    centroids = (points[corners[:, 0]] + points[corners[:, 1]] + points[corners[:, 2]]) / np.float32(3.0)
     keep = np.asarray(keep_fn(centroids), dtype=bool)  # (M,)
     ends = np.cumsum([len(faces) for _, _, faces in surfaces])
     out = []

@@ -126,3 +126,18 @@ def test_vertex_matching_agrees_with_the_sorting_reference(monkeypatch: pytest.M
     monkeypatch.setattr(mesh_passes, "kernel_module", lambda name: None)
     np.testing.assert_array_equal(fast, mesh_passes._same_vertex(new, before))
     assert (fast >= 0).sum() == 2000 and fast[0] == 9 and 5 not in fast
+
+
+@pytest.mark.parametrize("resolution", [1, 4, 8])
+def test_chunk_lattice_matches_the_numpy_reference(resolution: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(resolution)
+    voxels = np.unique(rng.integers(-3, 4, size=(60, 3)), axis=0) + np.array([40, -7, 3])
+    flags = rng.random(len(voxels)) < 0.3
+    fast = chunk_lattice((5, -1, 0), voxels, resolution, flags)
+    with monkeypatch.context() as m:
+        m.setattr(marching, "kernel_module", lambda name: None)
+        ref = chunk_lattice((5, -1, 0), voxels, resolution, flags)
+    assert fast.key == ref.key
+    for name in ("origin", "cells", "points", "point_voxel", "point_flagged"):
+        np.testing.assert_array_equal(getattr(fast, name), getattr(ref, name), err_msg=name)
+        assert getattr(fast, name).dtype == getattr(ref, name).dtype, name
