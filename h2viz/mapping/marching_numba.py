@@ -142,30 +142,29 @@ def _match_kernel(old: np.ndarray, new: np.ndarray) -> np.ndarray:
     while size < 2 * len(old):
         size *= 2
     slots = np.full(size, -1, dtype=np.int64)
-    mask = size - 1
     for i in range(len(old)):
-        h = (np.uint64(old[i, 0]) * np.uint64(0x9E3779B1) ^ np.uint64(old[i, 1]) * np.uint64(0x85EBCA77)
-             ^ np.uint64(old[i, 2]) * np.uint64(0xC2B2AE3D))  # fmt: skip
-        s = np.int64(h ^ (h >> np.uint64(17))) & mask
-        while slots[s] >= 0:
-            j = slots[s]
-            if old[j, 0] == old[i, 0] and old[j, 1] == old[i, 1] and old[j, 2] == old[i, 2]:
-                break  # a repeated row keeps its first index
-            s = (s + 1) & mask
-        if slots[s] < 0:
+        s = _find_slot(slots, old, old, i)
+        if slots[s] < 0:  # a repeated row keeps its first index
             slots[s] = i
     out = np.full(len(new), -1, dtype=np.int64)
     for i in range(len(new)):
-        h = (np.uint64(new[i, 0]) * np.uint64(0x9E3779B1) ^ np.uint64(new[i, 1]) * np.uint64(0x85EBCA77)
-             ^ np.uint64(new[i, 2]) * np.uint64(0xC2B2AE3D))  # fmt: skip
-        s = np.int64(h ^ (h >> np.uint64(17))) & mask
-        while slots[s] >= 0:
-            j = slots[s]
-            if old[j, 0] == new[i, 0] and old[j, 1] == new[i, 1] and old[j, 2] == new[i, 2]:
-                out[i] = j
-                break
-            s = (s + 1) & mask
+        out[i] = slots[_find_slot(slots, old, new, i)]
     return out
+
+
+@njit(inline=True)
+def _find_slot(slots: np.ndarray, old: np.ndarray, rows: np.ndarray, i: int) -> int:
+    """The slot holding the old row equal to rows[i], else the empty slot where the probe for it ends."""
+    mask = len(slots) - 1
+    h = (np.uint64(rows[i, 0]) * np.uint64(0x9E3779B1) ^ np.uint64(rows[i, 1]) * np.uint64(0x85EBCA77)
+         ^ np.uint64(rows[i, 2]) * np.uint64(0xC2B2AE3D))  # fmt: skip
+    s = np.int64(h ^ (h >> np.uint64(17))) & mask
+    while slots[s] >= 0:
+        j = slots[s]
+        if old[j, 0] == rows[i, 0] and old[j, 1] == rows[i, 1] and old[j, 2] == rows[i, 2]:
+            return s
+        s = (s + 1) & mask
+    return s
 
 
 def match_vertices(old: np.ndarray, new: np.ndarray) -> np.ndarray:
