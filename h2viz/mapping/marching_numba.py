@@ -44,17 +44,17 @@ def _vertex(
     v0 = np.float64(volume[x, y, z])
     v1 = np.float64(volume[ox, oy, oz])
     t = v0 / (v0 - v1) if v0 != v1 else 0.5
-    px, py, pz = np.float64(origin[0] + x), np.float64(origin[1] + y), np.float64(origin[2] + z)
     if t < snap or t > 1.0 - snap:  # on a lattice point: shared with every edge that snaps there
         sx, sy, sz = (ox, oy, oz) if t > 1.0 - snap else (x, y, z)
-        px, py, pz = np.float64(origin[0] + sx), np.float64(origin[1] + sy), np.float64(origin[2] + sz)
         vid = point_vertex[sx, sy, sz]
         if vid < 0:
             vid = n
             point_vertex[sx, sy, sz] = vid
+            px, py, pz = np.float64(origin[0] + sx), np.float64(origin[1] + sy), np.float64(origin[2] + sz)
             vertices[n, 0], vertices[n, 1], vertices[n, 2] = px * spacing, py * spacing, pz * spacing
             n += 1
     else:
+        px, py, pz = np.float64(origin[0] + x), np.float64(origin[1] + y), np.float64(origin[2] + z)
         if axis == 0:
             px += t
         elif axis == 1:
@@ -191,9 +191,7 @@ def _lattice_kernel(
         x0, y0, z0 = local[i, 0] * r, local[i, 1] * r, local[i, 2] * r
         cells[x0 : x0 + r, y0 : y0 + r, z0 : z0 + r] = True
         used[x0 : x0 + r + 1, y0 : y0 + r + 1, z0 : z0 + r + 1] = True
-    n = 0
-    for flag in used.ravel():
-        n += flag
+    n = int(used.sum())
     points = np.empty((n, 3), dtype=np.int64)
     point_voxel = np.empty(n, dtype=np.int64)
     point_flagged = np.zeros(n, dtype=np.bool_)

@@ -49,20 +49,21 @@ def _face_segments(inside: int, axis: int, side: int) -> list[tuple[int, int]]:
     is_in = {c: bool((inside >> c) & 1) for c in corners}
     crossed = [e for e in edges if is_in[_edge_corners(e)[0]] != is_in[_edge_corners(e)[1]]]
     normal = (1.0 if side else -1.0) * np.eye(3)[axis]
-    if len(crossed) == 2:
-        pairs = [(crossed[0], crossed[1], [c for c in corners if is_in[c]])]
+    inside_corners = [c for c in corners if is_in[c]]
+    if len(crossed) == 2:  # every inside corner lies on the same side of the one segment
+        pairs = [(crossed[0], crossed[1], inside_corners[0])]
     elif len(crossed) == 4:  # inside corners on a diagonal: each is cut off by the two crossed edges at it
         pairs = []
-        for c in (c for c in corners if is_in[c]):
+        for c in inside_corners:
             at = [e for e in crossed if c in _edge_corners(e)]
-            pairs.append((at[0], at[1], [c]))
+            pairs.append((at[0], at[1], c))
     else:
         return []
     segments = []
     for a, b, reference in pairs:
         pa, pb = _edge_midpoint(a), _edge_midpoint(b)
         left = np.cross(normal, pb - pa)
-        inside_left = float(np.dot(left, corner_offset(reference[0]) - pa)) > 0
+        inside_left = float(np.dot(left, corner_offset(reference) - pa)) > 0
         segments.append((a, b) if inside_left else (b, a))
     return segments
 
