@@ -30,6 +30,7 @@ import os
 import re
 import shlex
 import statistics
+import subprocess
 import sys
 import threading
 import time
@@ -61,6 +62,27 @@ for (const proto of [WebGL2RenderingContext.prototype, WebGLRenderingContext.pro
 """
 """Counts the scene frames a page draws (three.js clears the canvas once per frame of the viser scene)."""
 Key = tuple[int, int, int]
+REMOTE_MARK = "h2viz-remote-client"
+REMOTE_CLIENT = f"""
+import sys, msgspec, viser
+from viser._messages import ViewerCameraMessage
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+camera = ViewerCameraMessage((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1.0, 0.01, 100.0, 600, 800, (0.0, 0.0, 1.0),
+                             (0.0, -1.0, 0.0))
+received = 0  # {REMOTE_MARK}
+try:
+    with connect(sys.argv[1], subprotocols=["viser-v" + viser.__version__], max_size=None) as ws:
+        ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))  # viser counts a client from its camera
+        for message in ws:
+            received += len(message)
+except ConnectionClosed:
+    pass
+print(received, flush=True)
+"""
+"""A viser client that receives everything the dashboard sends and draws nothing: a browser on another machine
+(or with a GPU), as far as this machine's CPU is concerned. It runs in a process of its own, counted apart, and
+prints the bytes it received when the server closes the connection."""
 
 
 @dataclass
@@ -70,6 +92,8 @@ class Run:
     browsers: int
     recorded: bool = False  # page 0's websocket frames were recorded (the latency run)
     background: bool = False  # the browsers ran at the lowest CPU priority
+    remote: bool = False  # plain websocket readers instead of browsers (what a browser elsewhere costs)
+    repeat: int = 0  # which repetition of the plan this run belongs to (--repeat)
     frames: int = 0
     mapping_s: float = 0.0  # start -> last frame mapped
     map_s: list[float] = field(default_factory=list)  # Mapper.integrate per frame
@@ -93,6 +117,8 @@ class Run:
             return "headless (no dashboard, no meshing)"
         if self.browsers == 0:
             return "0 browser(s) (dashboard up, nothing meshed until a browser connects)"
+        if self.remote:
+            return f"{self.browsers} remote client(s) (drawing elsewhere)"
         label = f"{self.browsers} browser(s)" + (" at background priority" if self.background else "")
         return label + (", recording page 0's websocket" if self.recorded else "")
 
@@ -120,6 +146,8 @@ def _process_kind(pid: int) -> str:
         cmdline = (Path("/proc") / str(pid) / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
     except OSError:
         return "browser: other"
+    if REMOTE_MARK in cmdline:
+        return "remote client (websocket reader)"
     if "chrom" not in cmdline.split(" ", 1)[0]:
         return "playwright driver (test harness)"
     kind = re.search(r"--type=(\S+)", cmdline)  # chromium rewrites its children's argv into one string
@@ -263,13 +291,15 @@ def mapping_run(
     hide_mesh: bool = False,
     record: bool = False,
     background: bool = False,
+    remote: bool = False,
 ) -> tuple[Run, MappingWorker, Dashboard, Any]:
     """Map with the dashboard and `n_browsers` pages open. With `record`, page 0's websocket frames are
     shipped to this process and decoded to time mesh arrivals: that costs both cores real CPU, so speed is
-    measured in runs without it. `background` gives the browsers the lowest CPU priority (see --browser-background)."""
+    measured in runs without it. `background` gives the browsers the lowest CPU priority (see --browser-background);
+    `remote` connects `n_browsers` REMOTE_CLIENT processes instead of browsers."""
     from h2viz.mapping.mapper import Mapper
 
-    run, wire = Run(n_browsers, recorded=record, background=background), Wire()
+    run, wire = Run(n_browsers, recorded=record, background=background, remote=remote), Wire()
     source = Preloaded(cfg)
     cfg = dataclasses.replace(cfg, source=source.cfg)  # every preloaded frame, in order
     worker = MappingWorker(source, Mapper(cfg.mapping), cfg)
@@ -278,7 +308,8 @@ def mapping_run(
     dashboard.layers.mesh.on_sent.append(wire.on_sent)
     browser = None
     pages: list[Any] = []
-    if n_browsers:
+    readers: list[subprocess.Popen[bytes]] = []
+    if n_browsers and not remote:
         browser = launch_chromium(playwright)
         pages = [browser.new_page(viewport={"width": 800, "height": 600}) for _ in range(n_browsers)]
         for page in pages:
@@ -288,9 +319,14 @@ def mapping_run(
     dashboard.start()
     for page in pages:
         page.goto(dashboard.url)
+    if remote:
+        ws_url = dashboard.url.replace("http://", "ws://")
+        readers = [subprocess.Popen([sys.executable, "-c", REMOTE_CLIENT, ws_url]) for _ in range(n_browsers)]
     deadline = time.time() + 120
     while dashboard.client_count() < n_browsers and time.time() < deadline:
-        pages[0].wait_for_timeout(200)
+        time.sleep(0.2)
+    if dashboard.client_count() < n_browsers:
+        raise SystemExit(f"only {dashboard.client_count()} of {n_browsers} clients connected within 120 s")
     drawn = lambda: int(pages[0].evaluate("window.__h2vizFrames || 0")) if pages else 0  # noqa: E731
     t0, cpu0, frames0 = time.time(), cpu_seconds(), drawn()
     worker.start()
@@ -309,6 +345,9 @@ def mapping_run(
             pages[0].wait_for_timeout(100)
     if pages:
         pages[0].wait_for_timeout(3000)  # let the last update arrive
+    for reader in readers:
+        reader.terminate()
+        reader.wait(10)
     snap = worker.slot.get()[1]
     run.frames = snap.frames_done
     run.map_s = [s.map_time_s for s in snap.stats]
@@ -375,15 +414,38 @@ def _median_p90_max(values: list[float], scale: float = 1.0) -> str:
     return f"{scale * statistics.median(values):.0f} / {scale * p90:.0f} / {scale * max(values):.0f}"
 
 
+def vs_headless(run: Run, runs: list[Run]) -> float | None:
+    """Relative mapping speed of `run` against the headless run of its own repetition (None without one)."""
+    base = next((r for r in runs if r.browsers < 0 and r.repeat == run.repeat), None)
+    if base is None:
+        return None
+    return (run.frames / run.mapping_s) / (base.frames / base.mapping_s) - 1.0
+
+
+def print_repeats(runs: list[Run]) -> None:
+    """With --repeat: each configuration's speed against the headless run next to it, per repetition."""
+    if len({r.repeat for r in runs}) < 2:
+        return
+    by_label: dict[str, list[float]] = {}
+    for r in runs:
+        rel = vs_headless(r, runs)
+        if r.browsers >= 0 and rel is not None:
+            by_label.setdefault(r.label, []).append(rel)
+    print("\n| vs headless of the same repetition | each repetition | median |\n|---|---|---:|")
+    for label, rels in by_label.items():
+        each = ", ".join(f"{100 * v:+.0f} %" for v in rels)
+        print(f"| {label} | {each} | {100 * statistics.median(rels):+.0f} % |")
+
+
 def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], command: str) -> None:
     print(f"\nReproduce: {command}\n")
     print("| browsers | frames | mapping s | frames / s | vs headless | mapper s / frame (median) |")
     print("|---|---:|---:|---:|---:|---:|")
-    base = next((r.frames / r.mapping_s for r in runs if r.browsers < 0), None)
     for r in runs:
-        rate, median = r.frames / r.mapping_s, statistics.median(r.map_s)
-        rel = f"{100 * (rate / base - 1):+.0f} %" if base else "-"
-        print(f"| {r.label} | {r.frames} | {r.mapping_s:.1f} | {rate:.3f} | {rel} | {median:.2f} |")
+        rate, median, rel = r.frames / r.mapping_s, statistics.median(r.map_s), vs_headless(r, runs)
+        shown = f"{100 * rel:+.0f} %" if rel is not None else "-"
+        print(f"| {r.label} | {r.frames} | {r.mapping_s:.1f} | {rate:.3f} | {shown} | {median:.2f} |")
+    print_repeats(runs)
     for r in runs:
         if not r.recorded:
             continue
@@ -413,7 +475,7 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
     for name in sorted({k for r in runs for k in r.cpu_s}):
         cells = " | ".join(f"{100 * r.cpu_s.get(name, 0.0) / r.mapping_s:.0f}" for r in runs)
         print(f"| {name} | {cells} |")
-    shown = [r for r in runs if r.browsers > 0]
+    shown = [r for r in runs if r.browsers > 0 and not r.remote]
     if shown:
         print(f"\n| page 0 (800x600, software WebGL) | {' | '.join(r.label for r in shown)} |")
         print("|---|" + "---:|" * len(shown))
@@ -431,7 +493,18 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=20, help="frames mapped per run")
-    parser.add_argument("--browsers", type=int, nargs="+", default=[0, 1, 3], help="browser counts to run")
+    parser.add_argument("--browsers", type=int, nargs="*", default=[0, 1, 3], help="browser counts to run")
+    parser.add_argument(
+        "--remote",
+        type=int,
+        nargs="*",
+        default=[],
+        help="also run with this many remote clients: processes that receive everything a browser does and draw "
+        "nothing, as a browser on another machine (or with a GPU) would cost this one",
+    )
+    parser.add_argument(
+        "--repeat", type=int, default=1, help="run the whole plan this often, alternating headless first and last"
+    )
     parser.add_argument("--no-renders", action="store_true", help="skip the novel-view render timings")
     parser.add_argument("--no-headless", action="store_true", help="skip the run without dashboard")
     parser.add_argument("--no-latency", action="store_true", help="skip the run that times mesh arrivals")
@@ -452,22 +525,33 @@ def main() -> None:
     cfg_of = lambda: load_config([f for f in files if f], [*base, *args.overrides])  # noqa: E731
     from playwright.sync_api import sync_playwright
 
-    runs: list[Run] = [] if args.no_headless else [headless_run(cfg_of())]
+    runs: list[Run] = []
     renders: list[tuple[str, float, float]] = []
+    plan = [(n, False, False) for n in args.browsers] + [(n, False, True) for n in args.remote]
+    plan += [] if args.no_latency else [(1, True, False)]
     with sync_playwright() as playwright:
-        plan = [(n, False) for n in args.browsers] + ([] if args.no_latency else [(1, True)])
-        for n, record in plan:
-            run, worker, dashboard, browser = mapping_run(
-                cfg_of(), n, playwright, args.hide_mesh, record, args.browser_background
-            )
-            runs.append(run)
-            print(f"{run.label}: {run.frames} frames mapped in {run.mapping_s:.1f} s", file=sys.stderr)
-            if not renders and not args.no_renders:
-                renders = render_times(worker)
-            if browser is not None:
-                browser.close()
-            dashboard.stop()
-            worker.stop()
+        for repeat in range(args.repeat):
+            # headless first in even repetitions and last in odd ones, so that drift of the machine's speed
+            # over the repetitions weighs on both sides alike
+            steps: list[tuple[int, bool, bool] | None] = [None, *plan] if repeat % 2 == 0 else [*plan, None]
+            for step in steps:
+                if step is None:
+                    if not args.no_headless:
+                        runs.append(dataclasses.replace(headless_run(cfg_of()), repeat=repeat))
+                    continue
+                n, record, remote = step
+                run, worker, dashboard, browser = mapping_run(
+                    cfg_of(), n, playwright, args.hide_mesh, record, args.browser_background, remote
+                )
+                run.repeat = repeat
+                runs.append(run)
+                print(f"{run.label}: {run.frames} frames mapped in {run.mapping_s:.1f} s", file=sys.stderr)
+                if not renders and not args.no_renders:
+                    renders = render_times(worker)
+                if browser is not None:
+                    browser.close()
+                dashboard.stop()
+                worker.stop()
     print_tables(runs, renders, shlex.join([".venv/bin/python", "bench/viewer.py", *sys.argv[1:]]))
 
 

@@ -1,0 +1,46 @@
+"""bench/viewer.py's remote client (a viser client that draws nothing) against a real viser server, and the
+per-repetition comparison with headless runs."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from bench.viewer import REMOTE_CLIENT, Run, vs_headless
+from h2viz.viewer.server import make_viser_server
+
+
+def test_the_remote_client_counts_as_a_client_and_receives_what_the_scene_sends() -> None:
+    server = make_viser_server("127.0.0.1", 0)
+    reader = subprocess.Popen(
+        [sys.executable, "-c", REMOTE_CLIENT, f"ws://127.0.0.1:{server.get_port()}"], stdout=subprocess.PIPE
+    )
+    try:
+        deadline = time.time() + 30
+        while not server.get_clients() and time.time() < deadline:
+            time.sleep(0.05)
+        assert len(server.get_clients()) == 1
+        payload = np.random.default_rng(0).bytes(1_000_000)  # incompressible: the wire carries every byte
+        server.scene.add_glb("/blob", payload)  # the server forwards it as is; only a browser would parse it
+        server.flush()
+        time.sleep(1.0)
+    finally:
+        server.stop()
+    out, _ = reader.communicate(timeout=30)
+    assert reader.returncode == 0
+    assert int(out.decode().strip()) > len(payload)
+
+
+def run(browsers: int, frames: int, seconds: float, repeat: int) -> Run:
+    return Run(browsers, frames=frames, mapping_s=seconds, repeat=repeat)
+
+
+def test_each_run_is_compared_with_the_headless_run_of_its_own_repetition() -> None:
+    runs = [run(-1, 60, 20.0, 0), run(1, 60, 25.0, 0), run(1, 60, 33.0, 1), run(-1, 60, 30.0, 1)]
+    assert abs(vs_headless(runs[1], runs) - (20.0 / 25.0 - 1.0)) < 1e-12  # type: ignore[operator]
+    assert abs(vs_headless(runs[2], runs) - (30.0 / 33.0 - 1.0)) < 1e-12  # type: ignore[operator]
+    assert vs_headless(runs[0], runs) == 0.0
+    assert vs_headless(run(1, 60, 25.0, 2), runs) is None  # no headless run in repetition 2
