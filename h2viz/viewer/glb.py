@@ -19,12 +19,22 @@ _UBYTE, _SHORT, _UINT16, _UINT32, _FLOAT = 5121, 5122, 5123, 5125, 5126
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
+def _srgb_to_linear_table() -> np.ndarray:
+    """(256,) uint8: the linear-light value of each 8-bit sRGB value (IEC 61966-2-1), rounded."""
+    c = np.arange(256, dtype=np.float64) / 255.0
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    return np.round(lin * 255.0).astype(np.uint8)
+
+
+_SRGB_TO_LINEAR = _srgb_to_linear_table()
+
+
 def srgb_to_linear_u8(colors: np.ndarray, alpha: float = 1.0) -> np.ndarray:
     """sRGB uint8 colours (N,3) as linear-light RGBA uint8 (N,4) (glTF COLOR_0 is linear)."""
-    c = colors.astype(np.float32) / 255.0
-    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    rgba = np.concatenate([lin, np.full((len(c), 1), alpha, np.float32)], axis=1)
-    return np.round(rgba * 255.0).astype(np.uint8)
+    rgba = np.empty((len(colors), 4), dtype=np.uint8)
+    rgba[:, :3] = _SRGB_TO_LINEAR[np.asarray(colors, dtype=np.uint8)]
+    rgba[:, 3] = np.uint8(round(float(np.clip(alpha, 0.0, 1.0)) * 255.0))
+    return rgba
 
 
 def _pad(data: bytes, fill: bytes) -> bytes:

@@ -8,6 +8,7 @@ import struct
 from dataclasses import replace
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 import trimesh
@@ -137,6 +138,16 @@ def test_srgb_to_linear_end_points() -> None:
     assert out[0, 2] == round(((60 / 255 + 0.055) / 1.055) ** 2.4 * 255)
 
 
+def test_srgb_to_linear_matches_the_standard_curve_for_every_value() -> None:
+    values = np.arange(256, dtype=np.uint8)
+    out = srgb_to_linear_u8(np.stack([values, values[::-1], values], axis=1), alpha=0.5)
+    c = values / 255.0
+    expected = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4) * 255.0
+    assert np.abs(out[:, 0].astype(float) - expected).max() <= 0.5 + 1e-9
+    assert out[128, 0] == 55 and out[188, 0] == 128  # mid-grey sRGB is about a fifth of the light
+    assert (out[:, 1] == out[::-1, 0]).all() and (out[:, 3] == 128).all()
+
+
 def test_viser_pose_and_intrinsics_round_trip() -> None:
     T = look_at(np.array([1.0, -2.0, 1.5]), np.array([0.0, 0.5, 0.8]))
     wxyz, position = wxyz_position(T)
@@ -158,6 +169,17 @@ def test_client_view_matches_the_browser_camera() -> None:
     assert project(top, view.K, view.T_world_camera)[0][0, 1] == pytest.approx(-0.5, abs=1e-6)
     moved = SimpleNamespace(**{**camera.__dict__, "position": position + 0.01})
     assert client_view(moved, 200).key() != view.key()  # type: ignore[union-attr]
+
+
+def test_false_colour_range_of_a_large_image_follows_its_percentiles() -> None:
+    depth = np.linspace(0.5, 4.5, 480 * 640, dtype=np.float32).reshape(480, 640)
+    depth[:, :40] = 0.0  # no depth
+    rgb = colorize_depth(depth)
+    lo, hi = np.percentile(depth[depth > 0], [2, 98])  # the exact range, over every pixel
+    scaled = np.clip((depth - lo) / (hi - lo), 0, 1)
+    exact = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
+    diff = np.abs(rgb[:, 40:].astype(int) - exact[:, 40:].astype(int))
+    assert diff.mean() < 0.5 and (rgb[:, :40] == 0).all()
 
 
 def test_background_sends_empty_pixels_far_away() -> None:
