@@ -4,13 +4,18 @@ per resolution. Browsers are Debian's headless chromium driven by Playwright, on
 
 Without a GPU the browsers draw with software WebGL, and chromium runs in a session of its own, which Linux's
 autogroup scheduler gives an equal share of the cores: a browser drawing continuously halves mapping speed on
-two cores. --browser-background gives the browsers the lowest CPU priority, so that the slowdown left is what
-serving a browser costs the server (meshing, encoding, sending), as with a browser on another machine.
+two cores. --browser-background gives the browsers the lowest CPU priority, so that their drawing gets only the
+time mapping leaves idle (it still costs mapping some: caches, memory bandwidth). --remote connects clients that
+receive everything a browser does and draw nothing: what a browser on another machine, or one drawing with a
+GPU, costs this one (meshing, encoding, sending). --repeat runs the plan several times with a headless run next
+to each, so that ratios survive the machine's speed drifting between runs.
 
     .venv/bin/python bench/viewer.py                      # synthetic scene, configs/fast.yaml, 20 frames
     .venv/bin/python bench/viewer.py --frames 40 mapping.max_iters=10
     .venv/bin/python bench/viewer.py --config '' mapping.threads=2     # the default configuration
     .venv/bin/python bench/viewer.py --config '' --browsers 0 1 --browser-background mapping.threads=2
+    .venv/bin/python bench/viewer.py --config '' --frames 60 --browsers 1 --remote 1 --browser-background \
+        --no-latency --no-renders --repeat 4 mapping.threads=2
 
 Speed runs leave the pages alone; the latency run (one browser) ships page 0's websocket frames to this
 process to time mesh arrivals, which itself costs CPU, so its speed is shown apart. Latency of frame i: from
@@ -518,7 +523,7 @@ def main() -> None:
         "--browser-background",
         action="store_true",
         help="run the browsers at the lowest CPU priority: their software WebGL drawing then uses only the CPU "
-        "time mapping leaves, which measures what a browser on another machine (or with a GPU) costs the server",
+        "time mapping leaves idle",
     )
     parser.add_argument(
         "--config", default=str(ROOT / "configs" / "fast.yaml"), help="config file over the defaults ('' = none)"
