@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.marching import pack_rows, unique_rows, unpack_rows
 from h2viz.mapping.octree import FACE_DIRS, KeyIndex, VoxelOctree, decode, encode
 
@@ -132,7 +133,17 @@ class ObservedSupport:
     def contains(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: points (N,3) whose cell is within one cell of an observed cell (in `strict` voxels: whose
         cell is observed)."""
-        ok, vid, word, bit = _in_voxels(self.index, np.floor(np.asarray(points) / self.cell_m).astype(np.int64))
+        cells = np.floor(np.asarray(points) / self.cell_m).astype(np.int64)
+        fast = kernel_module("support_numba")
+        if fast is not None:
+            index = self.index
+            strict = np.zeros(0, bool) if self.strict is None else np.asarray(self.strict, bool)
+            return fast.contains_kernel(cells.reshape(-1, 3), index.sorted_keys, index.order, self.words, strict)
+        return self.contains_reference(cells)
+
+    def contains_reference(self, cells: np.ndarray) -> np.ndarray:
+        """`contains` of integer cells (N,3), through `dilated_rows` (the reference for the compiled test)."""
+        ok, vid, word, bit = _in_voxels(self.index, cells)
         held = self.dilated_rows(vid)[np.arange(len(vid)), word]  # (N',) uint64
         if self.strict is not None:
             held = np.where(self.strict[vid], self.words[vid, word], held)

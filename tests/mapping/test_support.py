@@ -6,7 +6,9 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import pytest
 
+from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.meshing import ChunkedMesher, merge_chunks
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.support import SUB, ObservedCells
@@ -139,3 +141,28 @@ def test_cells_far_from_the_origin_are_marked_as_near_it() -> None:
         support = observed.snapshot(octree)
         assert support.contains(points).all()
         assert not support.contains(points + np.array([0.0, 0.0, 0.35])).any()  # above every allocated voxel
+
+
+@pytest.mark.parametrize("with_strict", [False, True])
+def test_compiled_test_matches_the_dilation_reference(with_strict: bool) -> None:
+    """The compiled point test (27-cell search with a voxel-neighbour cache) against `dilated_rows`, points in any
+    order, inside and outside allocated voxels, with gaps where bits may only travel the reference's path."""
+    if kernel_module("support_numba") is None:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(11 + with_strict)
+    for origin in (np.zeros(3), np.array([-20_000.0, 15_000.0, -3.0])):
+        octree, points = _octree(rng)
+        points = points + origin
+        octree = VoxelOctree(VS, min_points=0, expansion=False)
+        octree.allocate(points)
+        observed = ObservedCells(VS)
+        observed.add(octree, points.repeat(25, axis=0) + rng.normal(0.0, 0.03, size=(3000, 3)))
+        strict = rng.random(octree.n_voxels) < 0.3 if with_strict else None
+        support = observed.snapshot(octree, strict)
+        near = points.repeat(40, axis=0) + rng.normal(0.0, 0.02, size=(4800, 3))
+        queries = np.concatenate([near, origin + rng.uniform(-0.5, 0.5, size=(20000, 3))])
+        got = support.contains(queries)
+        want = support.contains_reference(np.floor(queries / CELL).astype(np.int64))
+        assert 0.05 < want.mean() < 0.5  # both answers well represented
+        np.testing.assert_array_equal(got, want)
+    assert support.contains(np.zeros((0, 3))).shape == (0,)
