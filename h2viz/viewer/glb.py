@@ -44,12 +44,16 @@ def _pad(data: bytes, fill: bytes) -> bytes:
 def quantize_positions(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Positions (N,3) as normalised int16 (N,4) (padded to 8 bytes a vertex) with the translation (3,) and
     scale (3,) that map them back: p = translation + scale * q / 32767."""
-    pos = np.asarray(vertices, dtype=np.float64)
+    pos = np.asarray(vertices, dtype=np.float32)  # float32 arithmetic: 16-bit output, the dashboard thread's time
     lo, hi = (pos.min(axis=0), pos.max(axis=0)) if len(pos) else (np.zeros(3), np.zeros(3))
+    lo, hi = lo.astype(np.float64), hi.astype(np.float64)
     centre, half = (lo + hi) / 2.0, (hi - lo) / 2.0
     half = np.where(half > 0, half, 1.0)  # a flat axis: any scale maps q = 0 back to the centre
+    d = pos - centre.astype(np.float32)
+    d *= (32767.0 / half).astype(np.float32)
+    np.clip(np.rint(d, out=d), -32767, 32767, out=d)
     q = np.zeros((len(pos), 4), dtype=np.int16)
-    q[:, :3] = np.clip(np.round((pos - centre) / half * 32767.0), -32767, 32767)
+    q[:, :3] = d
     return q, centre, half
 
 

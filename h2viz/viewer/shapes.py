@@ -91,7 +91,7 @@ def colorize_depth(depth_m: np.ndarray, backdrop: tuple[int, int, int] = (0, 0, 
     lo, hi = np.percentile(values[::step], [2, 98])
     scaled = np.clip((depth_m - lo) / max(hi - lo, 1e-6), 0, 1)
     turbo = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
-    out[valid] = turbo[valid]
+    np.copyto(out, turbo, where=valid[..., None])  # a masked copy: boolean indexing of (H,W,3) is ~5x slower
     return out
 
 
