@@ -9,7 +9,8 @@ can cross zero and close such gaps with surfaces nobody saw, 3-7 cm in front of 
 A voxel's 512 bits are 8 uint64 words, word x holding bit 8*y + z of local cell (x, y, z); dilating by one cell
 is then a few shifts and ORs over all voxels at once, along z, then y, then x, with the six face neighbours
 supplying the border cells. Bits travel through allocated voxels only: a cell whose only observed neighbour lies
-diagonally across a voxel that does not exist stays unsupported (a corner of the allocated region).
+diagonally across a voxel that does not exist stays unsupported (a corner of the allocated region). With numba,
+`contains` tests the points in one compiled loop (`support_numba`) that gives the same answers.
 """
 
 from __future__ import annotations
