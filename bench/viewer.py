@@ -7,8 +7,9 @@ autogroup scheduler gives an equal share of the cores: a browser drawing continu
 two cores. --browser-background gives the browsers the lowest CPU priority, so that their drawing gets only the
 time mapping leaves idle (it still costs mapping some: caches, memory bandwidth). --remote connects clients that
 receive everything a browser does and draw nothing: what a browser on another machine, or one drawing with a
-GPU, costs this one (meshing, encoding, sending). --repeat runs the plan several times with a headless run next
-to each, so that ratios survive the machine's speed drifting between runs.
+GPU, costs this one (meshing, encoding, sending). --repeat runs the plan several times with a headless run before
+and after every configuration, each compared with the mean of its two neighbours, so that ratios survive the
+machine's speed drifting between runs.
 
     .venv/bin/python bench/viewer.py                      # synthetic scene, configs/fast.yaml, 20 frames
     .venv/bin/python bench/viewer.py --frames 40 mapping.max_iters=10
@@ -425,15 +426,23 @@ def _median_p90_max(values: list[float], scale: float = 1.0) -> str:
 
 
 def vs_headless(run: Run, runs: list[Run]) -> float | None:
-    """Relative mapping speed of `run` against the headless run of its own repetition (None without one)."""
-    base = next((r for r in runs if r.browsers < 0 and r.repeat == run.repeat), None)
-    if base is None:
+    """Relative mapping speed of `run` against the nearest headless runs before and after it in `runs` (listed in
+    the order they ran): their mean speed, or the one there is. None when `run` is not in `runs` or has neither."""
+    i = next((i for i, r in enumerate(runs) if r is run), None)
+    if i is None:
         return None
-    return (run.frames / run.mapping_s) / (base.frames / base.mapping_s) - 1.0
+    if run.browsers < 0:
+        return 0.0
+    before = next((r for r in reversed(runs[:i]) if r.browsers < 0), None)
+    after = next((r for r in runs[i + 1 :] if r.browsers < 0), None)
+    speeds = [r.frames / r.mapping_s for r in (before, after) if r is not None]
+    if not speeds:
+        return None
+    return (run.frames / run.mapping_s) / statistics.fmean(speeds) - 1.0
 
 
 def print_repeats(runs: list[Run]) -> None:
-    """With --repeat: each configuration's speed against the headless run next to it, per repetition."""
+    """With --repeat: each configuration's speed against the headless runs around it, per repetition."""
     if len({r.repeat for r in runs}) < 2:
         return
     by_label: dict[str, list[float]] = {}
@@ -441,7 +450,7 @@ def print_repeats(runs: list[Run]) -> None:
         rel = vs_headless(r, runs)
         if r.browsers >= 0 and rel is not None:
             by_label.setdefault(r.label, []).append(rel)
-    print("\n| vs headless of the same repetition | each repetition | median |\n|---|---|---:|")
+    print("\n| vs the headless runs just before and after | each repetition | median |\n|---|---|---:|")
     for label, rels in by_label.items():
         each = ", ".join(f"{100 * v:+.0f} %" for v in rels)
         print(f"| {label} | {each} | {100 * statistics.median(rels):+.0f} % |")
@@ -513,7 +522,10 @@ def main() -> None:
         "nothing, as a browser on another machine (or with a GPU) would cost this one",
     )
     parser.add_argument(
-        "--repeat", type=int, default=1, help="run the whole plan this often, alternating headless first and last"
+        "--repeat",
+        type=int,
+        default=1,
+        help="run the whole plan this often, with a headless run before and after every configuration",
     )
     parser.add_argument("--no-renders", action="store_true", help="skip the novel-view render timings")
     parser.add_argument("--no-headless", action="store_true", help="skip the run without dashboard")
@@ -541,9 +553,13 @@ def main() -> None:
     plan += [] if args.no_latency else [(1, True, False)]
     with sync_playwright() as playwright:
         for repeat in range(args.repeat):
-            # headless first in even repetitions and last in odd ones, so that drift of the machine's speed
-            # over the repetitions weighs on both sides alike
-            steps: list[tuple[int, bool, bool] | None] = [None, *plan] if repeat % 2 == 0 else [*plan, None]
+            steps: list[tuple[int, bool, bool] | None] = [None, *plan]
+            if args.repeat > 1:  # each configuration between two headless runs, in reversed order every other
+                # time: the machine's speed drifts by up to a third within an hour, less between neighbouring runs
+                order = plan if repeat % 2 == 0 else plan[::-1]
+                steps = [None] if repeat == 0 else []
+                for step in order:
+                    steps += [step, None]
             for step in steps:
                 if step is None:
                     if not args.no_headless:

@@ -38,9 +38,12 @@ def run(browsers: int, frames: int, seconds: float, repeat: int) -> Run:
     return Run(browsers, frames=frames, mapping_s=seconds, repeat=repeat)
 
 
-def test_each_run_is_compared_with_the_headless_run_of_its_own_repetition() -> None:
-    runs = [run(-1, 60, 20.0, 0), run(1, 60, 25.0, 0), run(1, 60, 33.0, 1), run(-1, 60, 30.0, 1)]
-    assert abs(vs_headless(runs[1], runs) - (20.0 / 25.0 - 1.0)) < 1e-12  # type: ignore[operator]
-    assert abs(vs_headless(runs[2], runs) - (30.0 / 33.0 - 1.0)) < 1e-12  # type: ignore[operator]
+def test_each_run_is_compared_with_the_headless_runs_around_it() -> None:
+    runs = [run(-1, 60, 20.0, 0), run(1, 60, 25.0, 0), run(-1, 60, 30.0, 0), run(1, 60, 33.0, 1), run(3, 60, 40.0, 1)]
+    headless_speed = (60 / 20.0 + 60 / 30.0) / 2
+    assert abs(vs_headless(runs[1], runs) - (60 / 25.0) / headless_speed + 1.0) < 1e-12  # type: ignore[operator]
+    assert abs(vs_headless(runs[3], runs) - (30.0 / 33.0 - 1.0)) < 1e-12  # type: ignore[operator]  # only before
+    assert abs(vs_headless(runs[4], runs) - (30.0 / 40.0 - 1.0)) < 1e-12  # type: ignore[operator]  # the nearest
     assert vs_headless(runs[0], runs) == 0.0
-    assert vs_headless(run(1, 60, 25.0, 2), runs) is None  # no headless run in repetition 2
+    assert vs_headless(run(1, 60, 25.0, 2), runs) is None  # not among the runs
+    assert vs_headless(runs[1], runs[1:2]) is None  # no headless run at all
