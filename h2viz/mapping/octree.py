@@ -79,16 +79,6 @@ class KeyIndex:
     def __len__(self) -> int:
         return int(self.keys.size)
 
-    @property
-    def sorted_keys(self) -> np.ndarray:
-        """The keys in ascending order (n,) int64 (do not modify)."""
-        return self._sorted
-
-    @property
-    def order(self) -> np.ndarray:
-        """The id of each of `sorted_keys` (n,) int64 (do not modify)."""
-        return self._order
-
     def add(self, keys: np.ndarray) -> np.ndarray:
         """Insert keys not present yet; return the ids of all given keys (N,)."""
         keys = np.asarray(keys, dtype=np.int64)

@@ -101,6 +101,7 @@ class ObservedSupport:
     words: np.ndarray  # (V,8) uint64
     strict: np.ndarray | None = None  # (V,) bool: a face there needs its own cell observed, not only a neighbour
     _index: KeyIndex | None = None
+    _table: tuple[np.ndarray, np.ndarray] | None = None  # voxel hash table of the compiled test (built on first use)
 
     @property
     def index(self) -> KeyIndex:
@@ -137,9 +138,10 @@ class ObservedSupport:
         cells = np.floor(np.asarray(points) / self.cell_m).astype(np.int64)
         fast = kernel_module("support_numba")
         if fast is not None:
-            index = self.index
+            if self._table is None:
+                self._table = fast.build_table(np.ascontiguousarray(self.keys, dtype=np.int64))
             strict = np.zeros(0, bool) if self.strict is None else np.asarray(self.strict, bool)
-            return fast.contains_kernel(cells.reshape(-1, 3), index.sorted_keys, index.order, self.words, strict)
+            return fast.contains_kernel(cells.reshape(-1, 3), *self._table, self.words, strict)
         return self.contains_reference(cells)
 
     def contains_reference(self, cells: np.ndarray) -> np.ndarray:
