@@ -9,7 +9,7 @@ of the ground truth itself misregistered by half a pixel.
 
 Acc: the paper's protocol samples points on both meshes, so even a perfect mesh scores the mean distance
 between two random point sets (the floor). `acc_budget` moves each reconstructed sample onto the ground-truth
-surface (its closest point on the ground-truth triangle nearest to it) and measures Acc again: that is the
+surface (its closest point on the ground-truth triangles, `closest_on_mesh`) and measures Acc again: that is the
 floor for this reconstruction's sample layout; the rest is split by how far the samples really are from the
 surface.
 """
