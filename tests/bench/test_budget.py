@@ -9,14 +9,9 @@ import pytest
 
 from bench import budget
 from h2viz.cli import main as h2viz_main
+from tests.test_cli import TINY as CLI_TINY
 
-TINY = [
-    "--set", "source.synthetic.width=96", "--set", "source.synthetic.height=72",
-    "--set", "source.synthetic.n_frames=40", "--set", "mapping.min_points_per_voxel=1",
-    "--set", "mapping.hash_log2_size=15", "--set", "mapping.rays_per_iter=1024", "--set", "mapping.max_iters=5",
-    "--set", "mapping.device=cpu", "--set", "eval.n_points=20000", "--set", "eval.n_interpolate=2",
-    "--set", "eval.n_extrapolate=0", "--set", "eval.render_downscale=1",
-]  # fmt: skip
+TINY = [*CLI_TINY, "--set", "eval.n_extrapolate=0"]  # the tiny run of tests/test_cli.py, no novel views
 
 
 def _table(lines: list[str], title: str) -> list[list[str]]:
