@@ -24,7 +24,7 @@ from bench.common import command_line, fmt, markdown_table  # noqa: E402
 from h2viz.config import load_config  # noqa: E402
 from h2viz.eval.budget import RegionErrors, acc_budget, half_pixel_psnr  # noqa: E402
 from h2viz.eval.metrics import observed_mask_fn  # noqa: E402
-from h2viz.eval.report import _shrink, load_mesh, scale_intrinsics  # noqa: E402
+from h2viz.eval.report import load_mesh, render_view  # noqa: E402
 from h2viz.eval.views import interpolate_views  # noqa: E402
 from h2viz.mapping.checkpoint import load_checkpoint  # noqa: E402
 from h2viz.mapping.mapper import Mapper  # noqa: E402
@@ -46,13 +46,10 @@ def image_budget(mapper: Mapper, frames: EvalFrames, n_views: int, downscale: in
     errors, shifted = RegionErrors.empty(), []
     for i in interpolate_views(poses, n_views):
         f = frames.frames[i]
-        gt_rgb, gt_depth = _shrink(f.rgb, f.depth_m, downscale)  # (h,w,3) [0,1], (h,w)
-        h, w = gt_depth.shape
-        K = scale_intrinsics(f.K, downscale)
-        pred = np.clip(mapper.render(K, f.T_world_camera, h, w, "rgb"), 0.0, 1.0)
-        pred_depth = mapper.render(K, f.T_world_camera, h, w, "depth")
-        valid = (gt_depth > 0) & (pred_depth > 0) & np.isfinite(pred_depth)
-        errors.add(pred, gt_rgb, gt_depth, valid)
+        pred, _, gt_rgb, gt_depth, valid = render_view(
+            mapper.render, (f.K, f.T_world_camera, f.rgb, f.depth_m), downscale
+        )
+        errors.add(np.clip(pred, 0.0, 1.0), gt_rgb, gt_depth, valid)
         shifted.append(half_pixel_psnr(gt_rgb, valid))
     return errors, float(np.mean(shifted))
 

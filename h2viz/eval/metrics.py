@@ -67,6 +67,19 @@ def point_metrics(rec_pts: np.ndarray, gt_pts: np.ndarray, threshold_m: float = 
     }
 
 
+def sample_pair(
+    rec: trimesh.Trimesh, gt: trimesh.Trimesh, n_points: int, gt_mask_fn: MaskFn | None = None, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The points Acc and Comp compare: `n_points` samples of the reconstruction (N,3) and of the ground truth
+    culled by `gt_mask_fn` (M,3), and the share of ground truth kept (%)."""
+    rec_pts = sample_surface(rec, n_points, seed)  # (N,3)
+    gt_pts = sample_surface(gt, n_points, seed + 1)  # (M,3)
+    if gt_mask_fn is None:
+        return rec_pts, gt_pts, 100.0
+    keep = np.asarray(gt_mask_fn(gt_pts), dtype=bool)  # (M,)
+    return rec_pts, gt_pts[keep], 100.0 * float(keep.mean())
+
+
 def mesh_metrics(
     rec: trimesh.Trimesh,
     gt: trimesh.Trimesh,
@@ -81,13 +94,7 @@ def mesh_metrics(
     `gt_mask_fn` culls the ground-truth samples to what was observed before matching; the share of
     ground truth it kept is reported as `gt_kept_pct`.
     """
-    rec_pts = sample_surface(rec, n_points, seed)  # (N,3)
-    gt_pts = sample_surface(gt, n_points, seed + 1)  # (M,3)
-    kept = 100.0
-    if gt_mask_fn is not None:
-        keep = np.asarray(gt_mask_fn(gt_pts), dtype=bool)  # (M,)
-        kept = 100.0 * float(keep.mean())
-        gt_pts = gt_pts[keep]
+    rec_pts, gt_pts, kept = sample_pair(rec, gt, n_points, gt_mask_fn, seed)
     out = point_metrics(rec_pts, gt_pts, threshold_m)
     out["gt_kept_pct"] = kept
     return out
@@ -96,9 +103,7 @@ def mesh_metrics(
 # ----------------------------------------------------------------------------------------- culling
 
 
-def observed_mask_fn(
-    frames: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], margin_m: float = 0.05
-) -> MaskFn:
+def observed_mask_fn(frames: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], margin_m: float = 0.05) -> MaskFn:
     """Culling to what `frames` = [(K, T_world_camera, depth_m), ...] observed.
 
     A point counts as observed when, in at least one frame, it lies in front of the camera, projects

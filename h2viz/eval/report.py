@@ -56,8 +56,13 @@ def _shrink(rgb: np.ndarray, depth_m: np.ndarray, k: int) -> tuple[np.ndarray, n
     return img, np.where(valid, blocks.mean(axis=(1, 3)), 0.0).astype(np.float32)
 
 
-def view_metrics(render: Renderer, view: EvalView, downscale: int = 1) -> dict[str, float]:
-    """PSNR / SSIM / depth L1 of one rendered view, over pixels where GT and rendered depth are valid."""
+RenderedView = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""(pred rgb (h,w,3) float32, pred depth (h,w), gt rgb (h,w,3) float32 in [0,1], gt depth (h,w), mask (h,w))."""
+
+
+def render_view(render: Renderer, view: EvalView, downscale: int = 1) -> RenderedView:
+    """One view rendered at 1/downscale with its ground truth shrunk to match, and the pixels to compare: where
+    GT and rendered depth are valid."""
     K, T_world_camera, rgb, depth_m = view
     gt_rgb, gt_depth = _shrink(np.asarray(rgb), np.asarray(depth_m), downscale)  # (h,w,3), (h,w)
     h, w = gt_depth.shape
@@ -70,6 +75,12 @@ def view_metrics(render: Renderer, view: EvalView, downscale: int = 1) -> dict[s
             "it must return (H,W,3) and (H,W)"
         )
     mask = (gt_depth > 0) & (pred_depth > 0) & np.isfinite(pred_depth)  # (h,w)
+    return pred_rgb, pred_depth, gt_rgb, gt_depth, mask
+
+
+def view_metrics(render: Renderer, view: EvalView, downscale: int = 1) -> dict[str, float]:
+    """PSNR / SSIM / depth L1 of one rendered view, over pixels where GT and rendered depth are valid."""
+    pred_rgb, pred_depth, gt_rgb, gt_depth, mask = render_view(render, view, downscale)
     return {
         "psnr_db": psnr(np.clip(pred_rgb, 0.0, 1.0), gt_rgb, mask),
         "ssim": ssim(np.clip(pred_rgb, 0.0, 1.0), gt_rgb, mask),
