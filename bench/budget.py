@@ -24,8 +24,7 @@ from bench.common import command_line, fmt, markdown_table  # noqa: E402
 from h2viz.config import load_config  # noqa: E402
 from h2viz.eval.budget import RegionErrors, acc_budget, half_pixel_psnr  # noqa: E402
 from h2viz.eval.metrics import observed_mask_fn  # noqa: E402
-from h2viz.eval.report import load_mesh, render_view  # noqa: E402
-from h2viz.eval.views import interpolate_views  # noqa: E402
+from h2viz.eval.report import load_mesh, render_view, training_views  # noqa: E402
 from h2viz.mapping.checkpoint import load_checkpoint  # noqa: E402
 from h2viz.mapping.mapper import Mapper  # noqa: E402
 from h2viz.pipeline import EvalFrames  # noqa: E402
@@ -42,13 +41,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def image_budget(mapper: Mapper, frames: EvalFrames, n_views: int, downscale: int) -> tuple[RegionErrors, float]:
     """Pooled region errors over `n_views` training views spread over the run, and the views' mean half-pixel PSNR."""
-    poses = np.stack([f.T_world_camera for f in frames.frames])  # (N,4,4)
     errors, shifted = RegionErrors.empty(), []
-    for i in interpolate_views(poses, n_views):
-        f = frames.frames[i]
-        pred, _, gt_rgb, gt_depth, valid = render_view(
-            mapper.render, (f.K, f.T_world_camera, f.rgb, f.depth_m), downscale
-        )
+    for view in training_views(frames.frames, n_views):
+        pred, _, gt_rgb, gt_depth, valid = render_view(mapper.render, view, downscale)
         errors.add(np.clip(pred, 0.0, 1.0), gt_rgb, gt_depth, valid)
         shifted.append(half_pixel_psnr(gt_rgb, valid))
     return errors, float(np.mean(shifted))
@@ -64,9 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     mapper, _ = load_checkpoint(args.run / "checkpoint.pt", cfg.mapping)
     source = make_source(cfg.source)
     n_views = cfg.eval.n_interpolate if args.views is None else args.views
-    frames = EvalFrames(len(source), n_views)
-    for position, frame in enumerate(source):
-        frames.add(position, frame)
+    frames = EvalFrames.read(source, n_views)
     if not frames.frames:
         print(f"{source.describe()}: no frames could be read")
         return 2

@@ -60,6 +60,14 @@ class EvalFrames:
         self.frames: list[RgbdFrame] = []
         self.coarse: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
+    @classmethod
+    def read(cls, source: FrameSource, n_keep: int) -> EvalFrames:
+        """Every frame of `source` read once (as `h2viz map` meets them), keeping what evaluation needs."""
+        frames = cls(len(source), n_keep)
+        for position, frame in enumerate(source):
+            frames.add(position, frame)
+        return frames
+
     def add(self, position: int, frame: RgbdFrame) -> None:
         if position % self.every == 0:
             self.frames.append(frame)

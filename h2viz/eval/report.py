@@ -43,7 +43,7 @@ def scale_intrinsics(K: np.ndarray, downscale: int) -> np.ndarray:
     return Ks
 
 
-def _shrink(rgb: np.ndarray, depth_m: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def shrink_view(rgb: np.ndarray, depth_m: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Ground truth at 1/k resolution: colour float (h,w,3) by area averaging; depth (h,w) as the
     block mean where the whole k x k block is valid, else 0."""
     img = rgb.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else rgb.astype(np.float32)
@@ -64,7 +64,7 @@ def render_view(render: Renderer, view: EvalView, downscale: int = 1) -> Rendere
     """One view rendered at 1/downscale with its ground truth shrunk to match, and the pixels to compare: where
     GT and rendered depth are valid."""
     K, T_world_camera, rgb, depth_m = view
-    gt_rgb, gt_depth = _shrink(np.asarray(rgb), np.asarray(depth_m), downscale)  # (h,w,3), (h,w)
+    gt_rgb, gt_depth = shrink_view(np.asarray(rgb), np.asarray(depth_m), downscale)  # (h,w,3), (h,w)
     h, w = gt_depth.shape
     Ks = scale_intrinsics(K, downscale)
     pred_rgb = np.asarray(render(Ks, T_world_camera, h, w, "rgb"), dtype=np.float32)
@@ -104,6 +104,12 @@ def image_metrics(render: Renderer, views: Sequence[EvalView], downscale: int = 
     return out
 
 
+def training_views(frames: Sequence[RgbdFrame], n: int) -> list[EvalView]:
+    """The "interpolate" views: `n` of the frames spread evenly over the trajectory, as evaluation picks them."""
+    poses = np.stack([f.T_world_camera for f in frames])  # (N,4,4)
+    return [(f.K, f.T_world_camera, f.rgb, f.depth_m) for f in (frames[i] for i in interpolate_views(poses, n))]
+
+
 def evaluate_images(
     render: Renderer, frames: Sequence[RgbdFrame], cfg: EvalConfig, gt_render: Renderer | None = None
 ) -> dict[str, dict[str, float]]:
@@ -112,19 +118,18 @@ def evaluate_images(
     whose reference images come from it."""
     if len(frames) == 0:
         raise EvalError("no frames to evaluate images on; check the source path and stride")
-    poses = np.stack([f.T_world_camera for f in frames])  # (N,4,4)
-    picked = [frames[i] for i in interpolate_views(poses, cfg.n_interpolate)]
-    views = [(f.K, f.T_world_camera, f.rgb, f.depth_m) for f in picked]
+    views = training_views(frames, cfg.n_interpolate)
     out = {"interpolate": image_metrics(render, views, cfg.render_downscale)}
     if gt_render is None or cfg.n_extrapolate <= 0:
         return out
     scene = np.concatenate(
-        [backproject(f.depth_m[::8, ::8], _stride_K(f.K, 8), f.T_world_camera) for f in picked]
+        [backproject(depth_m[::8, ::8], _stride_K(K, 8), T_world_camera) for K, T_world_camera, _, depth_m in views]
     )  # (P,3) observed surface
     if len(scene) < 2:
         raise EvalError("the evaluated frames have no valid depth; extrapolated views need observed surface")
     offsets = (cfg.extrapolate_min_offset_m, cfg.extrapolate_max_offset_m)
     min_gap = cfg.extrapolate_min_distance_m
+    poses = np.stack([f.T_world_camera for f in frames])  # (N,4,4)
     cams = extrapolate_views(poses, cfg.n_extrapolate, scene, cfg.seed, offsets, min_gap)  # (n,4,4)
     ds = cfg.render_downscale
     K, h, w = scale_intrinsics(frames[0].K, ds), frames[0].height // ds, frames[0].width // ds

@@ -1,0 +1,97 @@
+"""The PSNR ceiling of the map's colour representation (h2viz/eval/ceiling.py): the colour hash grid and decoder
+that `h2viz map` trains, fitted straight to the ground-truth colours of the views that are scored, at their
+true surface points, with a squared loss. No mapping run can score higher with that representation on those
+views; the curve over the steps shows whether the fit has levelled off.
+
+Reproduce:  .venv/bin/python bench/ceiling.py [--datasets synthetic,fountain,redkitchen] [--steps 3000]
+                [--variant mapping.hash_levels=5,mapping.hash_log2_size=21 ...] [--set key=value ...]
+
+Each --variant is one more colour representation to fit (comma-separated overrides on top of --set); the
+paper's defaults always come first. Views are picked and shrunk as `h2viz map` scores them (eval.n_interpolate
+training views at 1/eval.render_downscale).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.common import DATASETS, MissingData, command_line, dataset_config, fmt, markdown_table, pick  # noqa: E402
+from h2viz.config import Config, MappingConfig, apply_overrides  # noqa: E402
+from h2viz.eval.ceiling import CeilingPoint, SurfaceColours, fit_colour_ceiling, surface_colours  # noqa: E402
+from h2viz.eval.report import training_views  # noqa: E402
+from h2viz.pipeline import EvalFrames  # noqa: E402
+from h2viz.sources.base import make_source  # noqa: E402
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--datasets", default="synthetic", help=f"comma-separated, from {', '.join(DATASETS)}")
+    p.add_argument("--steps", type=int, default=3000, help="Adam steps per fit")
+    p.add_argument("--batch", type=int, default=1 << 16, help="samples per step")
+    p.add_argument("--variant", action="append", default=[], help="comma-separated overrides: one more fit")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="overrides for every fit")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: mapping.threads)")
+    return p.parse_args(argv)
+
+
+def grid_label(m: MappingConfig) -> str:
+    """The colour representation in a few words: levels, finest cell and table size."""
+    finest_mm = 1000 * (m.hash_base_resolution_m or m.voxel_size_m) / m.hash_scale ** (m.hash_levels - 1)
+    return f"L={m.hash_levels}, finest {finest_mm:.3g} mm, T=2^{m.hash_log2_size}"
+
+
+def load_views(cfg: Config) -> SurfaceColours:
+    """The scored training views of the configured source, lifted to surface colour samples."""
+    source = make_source(cfg.source)
+    try:
+        frames = EvalFrames.read(source, cfg.eval.n_interpolate)
+    finally:
+        source.close()
+    if not frames.frames:
+        raise MissingData(f"{source.describe()}: no frames could be read")
+    return surface_colours(training_views(frames.frames, cfg.eval.n_interpolate), cfg.eval.render_downscale)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    rows: list[list[str]] = []
+    for name in pick(args.datasets, dict(DATASETS), "dataset"):
+        try:
+            cfg = dataset_config(DATASETS[name], None, args.set)
+        except MissingData as err:
+            print(f"{name}: skipped ({err})")
+            continue
+        torch.set_num_threads(args.threads or cfg.mapping.threads or torch.get_num_threads())
+        data = load_views(cfg)
+        print(f"{name}: {len(data.points)} samples from {int(data.view.max()) + 1} views", flush=True)
+        for variant in ["", *args.variant]:
+            mapping = apply_overrides(copy.deepcopy(cfg), [v for v in variant.split(",") if v]).mapping
+            start = time.perf_counter()
+
+            def progress(p: CeilingPoint, label: str = grid_label(mapping)) -> None:
+                print(f"  {label}: step {p.steps}: {p.pooled_psnr_db:.2f} dB pooled", flush=True)
+
+            curve = fit_colour_ceiling(data, mapping, args.steps, args.batch, on_report=progress)
+            seconds = time.perf_counter() - start
+            trend = " -> ".join(fmt(p.pooled_psnr_db) for p in curve)
+            last = curve[-1]
+            scores = [fmt(last.pooled_psnr_db), fmt(last.mean_view_psnr_db)]
+            rows.append([name, grid_label(mapping), trend, *scores, fmt(seconds, 0)])
+    if rows:
+        header = ["dataset", "colour grid", "pooled PSNR over the steps dB", "pooled dB", "mean of views dB", "s"]
+        print("\n" + markdown_table(header, rows))
+        print(f"\n- {args.steps} Adam steps of {args.batch} samples; PSNR on the samples fitted (training views)")
+    print(f"\ncommand: {command_line('bench/ceiling.py')}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

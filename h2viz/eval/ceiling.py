@@ -1,0 +1,121 @@
+"""The PSNR ceiling of the map's colour representation: how well it can fit a scene's colours at all.
+
+`fit_colour_ceiling` trains the very colour field `h2viz map` trains (HybridField's colour hash grid and
+decoder, built from the same MappingConfig) directly on ground-truth colours at ground-truth surface points:
+one point per valid pixel of the views that are scored, lifted with the view's own depth (`surface_colours`).
+It then scores the field at those points. Everything favours the field:
+
+- geometry is exact (no SDF to learn, no volume rendering blending neighbouring samples);
+- it is fitted to exactly the pixels it is scored on, with a squared loss (what PSNR measures), for as many
+  steps as asked, where mapping gets a few iterations a frame of 4096 rays spread over many more views.
+
+The PSNR it reaches is therefore an upper bound for any mapping run with that colour representation on those
+views. Views are handled as `h2viz map` scores them: at 1/downscale, ground-truth colour area-averaged.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from h2viz.config import MappingConfig
+from h2viz.eval.metrics import EvalError
+from h2viz.eval.report import EvalView, scale_intrinsics, shrink_view
+from h2viz.geometry import backproject
+from h2viz.mapping.field import HybridField
+
+EVAL_CHUNK = 1 << 17
+"""Points per no-gradient colour evaluation (bounded memory)."""
+
+
+@dataclass
+class SurfaceColours:
+    """Ground-truth colour samples on the true surface, one per valid pixel of the scored views."""
+
+    points: np.ndarray  # (N,3) float32 world metres
+    rgb: np.ndarray  # (N,3) float32 in [0,1]
+    view: np.ndarray  # (N,) int64 index of the view each sample comes from
+
+
+def surface_colours(views: Sequence[EvalView], downscale: int = 1) -> SurfaceColours:
+    """Every pixel with valid depth of every view at 1/downscale (colour area-averaged, depth the block mean as
+    `report.render_view` scores them), lifted along its pixel-centre ray to its depth in world coordinates."""
+    points, rgb, view = [], [], []
+    for i, (K, T_world_camera, image, depth_m) in enumerate(views):
+        gt_rgb, gt_depth = shrink_view(np.asarray(image), np.asarray(depth_m), downscale)  # (h,w,3), (h,w)
+        valid = gt_depth > 0
+        points.append(backproject(gt_depth, scale_intrinsics(K, downscale), T_world_camera).astype(np.float32))
+        rgb.append(gt_rgb[valid])  # backproject walks the valid pixels in the same row-major order
+        view.append(np.full(int(valid.sum()), i, dtype=np.int64))
+    if not points or sum(len(p) for p in points) == 0:
+        raise EvalError("no pixel with valid depth in the views: nothing to fit the colour field to")
+    return SurfaceColours(np.concatenate(points), np.concatenate(rgb).astype(np.float32), np.concatenate(view))
+
+
+@dataclass
+class CeilingPoint:
+    """The fitted field's PSNR after `steps` steps: pooled over every sample, and the mean of the views' own
+    PSNRs (as metrics.json averages views)."""
+
+    steps: int
+    pooled_psnr_db: float
+    mean_view_psnr_db: float
+
+
+def colour_field(cfg: MappingConfig) -> HybridField:
+    """The mapping's field for `cfg`; only its colour grid and decoder are used here."""
+    torch.manual_seed(cfg.seed)
+    return HybridField(replace(cfg, priors=False))
+
+
+@torch.no_grad()
+def predict(field: HybridField, points: np.ndarray) -> np.ndarray:
+    """Colour (N,3) float32 of the field at points (N,3)."""
+    x = torch.from_numpy(points)
+    return torch.cat([field.color(x[i : i + EVAL_CHUNK]) for i in range(0, len(x), EVAL_CHUNK)]).numpy()
+
+
+def score(pred: np.ndarray, data: SurfaceColours) -> tuple[float, float]:
+    """(pooled PSNR, mean per-view PSNR) in dB of predicted colours (N,3) against the samples."""
+    sq = np.sum((pred.astype(np.float64) - data.rgb) ** 2, axis=1)  # (N,) summed over channels
+    n_views = int(data.view.max()) + 1
+    per_view_sq = np.bincount(data.view, weights=sq, minlength=n_views)
+    per_view_n = 3 * np.bincount(data.view, minlength=n_views)
+    seen = per_view_n > 0
+    mean_view = float(np.mean(-10 * np.log10(np.maximum(per_view_sq[seen] / per_view_n[seen], 1e-10))))
+    return float(-10 * np.log10(max(sq.sum() / (3 * len(sq)), 1e-10))), mean_view
+
+
+def fit_colour_ceiling(
+    data: SurfaceColours,
+    cfg: MappingConfig,
+    steps: int,
+    batch: int = 1 << 16,
+    n_reports: int = 4,
+    on_report: Callable[[CeilingPoint], None] | None = None,
+) -> list[CeilingPoint]:
+    """Fit the colour field of `cfg` to the samples with Adam (the mapping's lr and betas) on the squared error
+    of random batches; score it `n_reports` times, evenly over the steps (the last after the final step)."""
+    if steps < 1 or batch < 1 or n_reports < 1:
+        raise EvalError(f"steps ({steps}), batch ({batch}) and n_reports ({n_reports}) must be >= 1")
+    field = colour_field(cfg)
+    params = [*field.color_grid.parameters(), *field.color_mlp.parameters()]
+    optim = torch.optim.Adam(params, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    points, rgb = torch.from_numpy(data.points), torch.from_numpy(data.rgb)
+    rng = torch.Generator().manual_seed(cfg.seed)
+    report_at = {max(1, round(steps * (k + 1) / n_reports)) for k in range(n_reports)}
+    curve: list[CeilingPoint] = []
+    for step in range(1, steps + 1):
+        pick = torch.randint(len(points), (min(batch, len(points)),), generator=rng)  # (B,)
+        loss = torch.mean((field.color(points[pick]) - rgb[pick]) ** 2)
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        optim.step()
+        if step in report_at:
+            curve.append(CeilingPoint(step, *score(predict(field, data.points), data)))
+            if on_report is not None:
+                on_report(curve[-1])
+    return curve

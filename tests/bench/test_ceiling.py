@@ -1,0 +1,24 @@
+"""bench/ceiling.py on the tiny synthetic room: one row per colour grid, with its curve and the grid it fitted."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench import ceiling
+from tests.test_cli import TINY as CLI_TINY
+
+TINY = [*CLI_TINY, "--set", "source.synthetic.n_frames=20"]  # the tiny run of tests/test_cli.py, fewer frames
+
+
+def test_ceiling_fits_each_variant_and_prints_one_row(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--steps", "60", "--batch", "2048", "--variant", "mapping.hash_levels=2", *TINY]
+    assert ceiling.main(args) == 0
+    lines = capsys.readouterr().out.splitlines()
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines if line.startswith("| synthetic")]
+    assert [r[1] for r in rows] == ["L=4, finest 12.5 mm, T=2^15", "L=2, finest 50 mm, T=2^15"]
+    for row in rows:
+        curve = [float(v) for v in row[2].split(" -> ")]
+        assert len(curve) == 4 and curve[-1] == float(row[3])
+        assert 8.0 < curve[-1] < 40.0 and curve[-1] > curve[0]  # it learns, and stays a real image error
+    assert float(rows[0][3]) > float(rows[1][3])  # four levels fit the room's texture better than two
+    assert any(line.startswith("command: .venv/bin/python bench/ceiling.py") for line in lines)
