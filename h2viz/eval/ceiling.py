@@ -27,6 +27,7 @@ from h2viz.eval.report import EvalView, scale_intrinsics, shrink_view
 from h2viz.geometry import backproject
 from h2viz.mapping.field import HybridField
 
+LOSSES: tuple[str, ...] = ("l2", "l1")
 EVAL_CHUNK = 1 << 17
 """Points per no-gradient colour evaluation (bounded memory)."""
 
@@ -96,11 +97,15 @@ def fit_colour_ceiling(
     batch: int = 1 << 16,
     n_reports: int = 4,
     on_report: Callable[[CeilingPoint], None] | None = None,
+    loss: str = "l2",
 ) -> list[CeilingPoint]:
-    """Fit the colour field of `cfg` to the samples with Adam (the mapping's lr and betas) on the squared error
-    of random batches; score it `n_reports` times, evenly over the steps (the last after the final step)."""
+    """Fit the colour field of `cfg` to the samples with Adam (the mapping's lr and betas) on random batches,
+    minimising the squared error ("l2", what PSNR measures) or the absolute error ("l1", mapping's colour loss);
+    score it `n_reports` times, evenly over the steps (the last after the final step)."""
     if steps < 1 or batch < 1 or n_reports < 1:
         raise EvalError(f"steps ({steps}), batch ({batch}) and n_reports ({n_reports}) must be >= 1")
+    if loss not in LOSSES:
+        raise EvalError(f"unknown colour loss {loss!r}; use one of {', '.join(LOSSES)}")
     field = colour_field(cfg)
     params = [*field.color_grid.parameters(), *field.color_mlp.parameters()]
     optim = torch.optim.Adam(params, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
@@ -110,9 +115,10 @@ def fit_colour_ceiling(
     curve: list[CeilingPoint] = []
     for step in range(1, steps + 1):
         pick = torch.randint(len(points), (min(batch, len(points)),), generator=rng)  # (B,)
-        loss = torch.mean((field.color(points[pick]) - rgb[pick]) ** 2)
+        error = field.color(points[pick]) - rgb[pick]  # (B,3)
+        value = torch.mean(error**2) if loss == "l2" else torch.mean(error.abs())
         optim.zero_grad(set_to_none=True)
-        loss.backward()
+        value.backward()
         optim.step()
         if step in report_at:
             curve.append(CeilingPoint(step, *score(predict(field, data.points), data)))

@@ -83,3 +83,12 @@ def test_fit_rejects_nonsense_settings() -> None:
     data = SurfaceColours(np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32), np.zeros(2, np.int64))
     with pytest.raises(EvalError, match="must be >= 1"):
         fit_colour_ceiling(data, _small(), steps=0)
+    with pytest.raises(EvalError, match="unknown colour loss 'huber'"):
+        fit_colour_ceiling(data, _small(), steps=1, loss="huber")
+
+
+def test_mapping_colour_loss_fits_too() -> None:
+    x, _ = _plane_xy()
+    ramp = np.stack([0.2 + 4 * (x + 0.07)] * 3, axis=-1)
+    curve = fit_colour_ceiling(surface_colours([_plane_view(ramp)]), _small(), steps=300, batch=1024, loss="l1")
+    assert len(curve) == 4 and curve[-1].pooled_psnr_db > 40.0
