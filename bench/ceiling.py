@@ -7,6 +7,10 @@ Reproduce:  .venv/bin/python bench/ceiling.py [--datasets synthetic,fountain,red
                 [--batch 65536] [--loss l2|l1] [--variant mapping.hash_levels=5,mapping.hash_log2_size=21 ...]
                 [--set key=value ...]
 
+--run DIR takes a finished `h2viz map --out DIR` run instead of --datasets: its source and settings, and a first
+row with the run's own colour field scored at the same points, so that what mapping learned and what the
+representation can hold are compared on equal terms (both at exact geometry).
+
 Each --variant is one more colour representation to fit (comma-separated overrides on top of --set); the
 paper's defaults always come first. Views are picked and shrunk as `h2viz map` scores them (eval.n_interpolate
 training views at 1/eval.render_downscale).
@@ -25,9 +29,18 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import DATASETS, MissingData, command_line, dataset_config, fmt, markdown_table, pick  # noqa: E402
-from h2viz.config import Config, MappingConfig, apply_overrides  # noqa: E402
-from h2viz.eval.ceiling import LOSSES, CeilingPoint, SurfaceColours, fit_colour_ceiling, surface_colours  # noqa: E402
+from h2viz.config import Config, MappingConfig, apply_overrides, load_config  # noqa: E402
+from h2viz.eval.ceiling import (  # noqa: E402
+    LOSSES,
+    CeilingPoint,
+    SurfaceColours,
+    fit_colour_ceiling,
+    predict,
+    score,
+    surface_colours,
+)
 from h2viz.eval.report import training_views  # noqa: E402
+from h2viz.mapping.checkpoint import load_checkpoint  # noqa: E402
 from h2viz.pipeline import EvalFrames  # noqa: E402
 from h2viz.sources.base import make_source  # noqa: E402
 
@@ -35,6 +48,9 @@ from h2viz.sources.base import make_source  # noqa: E402
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--datasets", default="synthetic", help=f"comma-separated, from {', '.join(DATASETS)}")
+    p.add_argument(
+        "--run", type=Path, default=None, help="a finished `h2viz map --out` run: its source, and its own field"
+    )
     p.add_argument("--steps", type=int, default=3000, help="Adam steps per fit")
     p.add_argument("--batch", type=int, default=1 << 16, help="samples per step")
     p.add_argument("--loss", choices=LOSSES, default="l2", help="l2: what PSNR measures; l1: mapping's colour loss")
@@ -62,31 +78,56 @@ def load_views(cfg: Config) -> SurfaceColours:
     return surface_colours(training_views(frames.frames, cfg.eval.n_interpolate), cfg.eval.render_downscale)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    rows: list[list[str]] = []
+def fit_rows(name: str, cfg: Config, data: SurfaceColours, args: argparse.Namespace) -> list[list[str]]:
+    """One table row per colour representation (the defaults, then each --variant) fitted to `data`."""
+    rows = []
+    for variant in ["", *args.variant]:
+        mapping = apply_overrides(copy.deepcopy(cfg), [v for v in variant.split(",") if v]).mapping
+        start = time.perf_counter()
+
+        def progress(p: CeilingPoint, label: str = grid_label(mapping)) -> None:
+            print(f"  {label}: step {p.steps}: {p.pooled_psnr_db:.2f} dB pooled", flush=True)
+
+        curve = fit_colour_ceiling(data, mapping, args.steps, args.batch, on_report=progress, loss=args.loss)
+        trend = " -> ".join(fmt(p.pooled_psnr_db) for p in curve)
+        scores = [fmt(curve[-1].pooled_psnr_db), fmt(curve[-1].mean_view_psnr_db)]
+        rows.append([name, grid_label(mapping), trend, *scores, fmt(time.perf_counter() - start, 0)])
+    return rows
+
+
+def run_row(run: Path, cfg: Config, data: SurfaceColours) -> list[str]:
+    """The row of a finished run: its own trained colour field scored at the same true surface points."""
+    mapper, _ = load_checkpoint(run / "checkpoint.pt", cfg.mapping)
+    pooled, mean_view = score(predict(mapper.field, data.points), data)
+    return [run.name, f"{grid_label(cfg.mapping)}, mapped", "-", fmt(pooled), fmt(mean_view), "-"]
+
+
+def configs(args: argparse.Namespace) -> list[tuple[str, Config]]:
+    """(name, config) of each dataset to fit, or of the --run directory's source."""
+    if args.run is not None:
+        return [(args.run.name, load_config([args.run / "config.yaml"], args.set))]
+    out = []
     for name in pick(args.datasets, dict(DATASETS), "dataset"):
         try:
-            cfg = dataset_config(DATASETS[name], None, args.set)
+            out.append((name, dataset_config(DATASETS[name], None, args.set)))
         except MissingData as err:
             print(f"{name}: skipped ({err})")
-            continue
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.run is not None and not (args.run / "checkpoint.pt").is_file():
+        print(f"{args.run / 'checkpoint.pt'} is missing: pass the --out directory of a finished `h2viz map` run")
+        return 2
+    rows: list[list[str]] = []
+    for name, cfg in configs(args):
         torch.set_num_threads(args.threads or cfg.mapping.threads or torch.get_num_threads())
         data = load_views(cfg)
         print(f"{name}: {len(data.points)} samples from {int(data.view.max()) + 1} views", flush=True)
-        for variant in ["", *args.variant]:
-            mapping = apply_overrides(copy.deepcopy(cfg), [v for v in variant.split(",") if v]).mapping
-            start = time.perf_counter()
-
-            def progress(p: CeilingPoint, label: str = grid_label(mapping)) -> None:
-                print(f"  {label}: step {p.steps}: {p.pooled_psnr_db:.2f} dB pooled", flush=True)
-
-            curve = fit_colour_ceiling(data, mapping, args.steps, args.batch, on_report=progress, loss=args.loss)
-            seconds = time.perf_counter() - start
-            trend = " -> ".join(fmt(p.pooled_psnr_db) for p in curve)
-            last = curve[-1]
-            scores = [fmt(last.pooled_psnr_db), fmt(last.mean_view_psnr_db)]
-            rows.append([name, grid_label(mapping), trend, *scores, fmt(seconds, 0)])
+        if args.run is not None:
+            rows.append(run_row(args.run, cfg, data))
+        rows += fit_rows(name, cfg, data, args)
     if rows:
         header = ["dataset", "colour grid", "pooled PSNR over the steps dB", "pooled dB", "mean of views dB", "s"]
         print("\n" + markdown_table(header, rows))
