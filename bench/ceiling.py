@@ -4,8 +4,8 @@ true surface points, with a squared loss: in practice an upper bound for mapping
 on those views; the curve over the steps shows whether the fit has levelled off.
 
 Reproduce:  .venv/bin/python bench/ceiling.py [--datasets synthetic,fountain,redkitchen] [--steps 3000]
-                [--batch 65536] [--loss l2|l1] [--variant mapping.hash_levels=5,mapping.hash_log2_size=21 ...]
-                [--set key=value ...]
+                [--batch 65536] [--loss l2|l1] [--render surface|volume]
+                [--variant mapping.hash_levels=5,mapping.hash_log2_size=21 ...] [--set key=value ...]
 
 --run DIR takes a finished `h2viz map --out DIR` run instead of --datasets: its source and settings, and a first
 row with the run's own colour field scored at the same points, so that what mapping learned and what the
@@ -32,6 +32,7 @@ from bench.common import DATASETS, MissingData, command_line, dataset_config, fm
 from h2viz.config import Config, MappingConfig, apply_overrides, load_config  # noqa: E402
 from h2viz.eval.ceiling import (  # noqa: E402
     LOSSES,
+    RENDERS,
     CeilingPoint,
     SurfaceColours,
     fit_colour_ceiling,
@@ -54,6 +55,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=3000, help="Adam steps per fit")
     p.add_argument("--batch", type=int, default=1 << 16, help="samples per step")
     p.add_argument("--loss", choices=LOSSES, default="l2", help="l2: what PSNR measures; l1: mapping's colour loss")
+    p.add_argument("--render", choices=RENDERS, default="surface", help="volume: pixels rendered as mapping does")
     p.add_argument("--variant", action="append", default=[], help="comma-separated overrides: one more fit")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="overrides for every fit")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: mapping.threads)")
@@ -88,7 +90,9 @@ def fit_rows(name: str, cfg: Config, data: SurfaceColours, args: argparse.Namesp
         def progress(p: CeilingPoint, label: str = grid_label(mapping)) -> None:
             print(f"  {label}: step {p.steps}: {p.pooled_psnr_db:.2f} dB pooled", flush=True)
 
-        curve = fit_colour_ceiling(data, mapping, args.steps, args.batch, on_report=progress, loss=args.loss)
+        curve = fit_colour_ceiling(
+            data, mapping, args.steps, args.batch, on_report=progress, loss=args.loss, render=args.render
+        )
         trend = " -> ".join(fmt(p.pooled_psnr_db) for p in curve)
         scores = [fmt(curve[-1].pooled_psnr_db), fmt(curve[-1].mean_view_psnr_db)]
         rows.append([name, grid_label(mapping), trend, *scores, fmt(time.perf_counter() - start, 0)])
@@ -131,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     if rows:
         header = ["dataset", "colour grid", "pooled PSNR over the steps dB", "pooled dB", "mean of views dB", "s"]
         print("\n" + markdown_table(header, rows))
-        print(f"\n- {args.steps} Adam steps of {args.batch} samples, {args.loss} loss; PSNR on the fitted samples")
+        fit = f"{args.steps} Adam steps of {args.batch} samples, {args.loss} loss, {args.render} colour"
+        print(f"\n- {fit}; PSNR of the field at the points")
     print(f"\ncommand: {command_line('bench/ceiling.py')}")
     return 0
 

@@ -7,9 +7,10 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from h2viz.config import MappingConfig
-from h2viz.eval.ceiling import SurfaceColours, fit_colour_ceiling, score, surface_colours
+from h2viz.eval.ceiling import SurfaceColours, colour_field, fit_colour_ceiling, score, surface_colours, volume_colour
 from h2viz.eval.metrics import EvalError
 
 F, W, H, Z = 500.0, 64, 48, 1.0
@@ -53,7 +54,7 @@ def test_surface_samples_need_valid_depth() -> None:
 
 def test_score_pools_samples_and_averages_views() -> None:
     rgb = np.full((4, 3), 0.5, np.float32)
-    data = SurfaceColours(np.zeros((4, 3), np.float32), rgb, np.array([0, 0, 0, 1]))
+    data = SurfaceColours(np.zeros((4, 3), np.float32), rgb, np.array([0, 0, 0, 1]), np.zeros((2, 3), np.float32))
     pred = rgb.copy()
     pred[3] += 0.1  # view 1 off by 0.1 in every channel, view 0 perfect
     pooled, mean_view = score(pred, data)
@@ -80,15 +81,35 @@ def test_fit_reproduces_a_smooth_ramp_but_not_texture_finer_than_the_grid() -> N
 
 
 def test_fit_rejects_nonsense_settings() -> None:
-    data = SurfaceColours(np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32), np.zeros(2, np.int64))
+    zeros = np.zeros((2, 3), np.float32)
+    data = SurfaceColours(zeros, zeros, np.zeros(2, np.int64), zeros[:1])
     with pytest.raises(EvalError, match="must be >= 1"):
         fit_colour_ceiling(data, _small(), steps=0)
     with pytest.raises(EvalError, match="unknown colour loss 'huber'"):
         fit_colour_ceiling(data, _small(), steps=1, loss="huber")
+    with pytest.raises(EvalError, match="unknown render 'mesh'"):
+        fit_colour_ceiling(data, _small(), steps=1, render="mesh")
 
 
-def test_mapping_colour_loss_fits_too() -> None:
+def test_mapping_colour_loss_and_volume_rendering_fit_too() -> None:
     x, _ = _plane_xy()
     ramp = np.stack([0.2 + 4 * (x + 0.07)] * 3, axis=-1)
-    curve = fit_colour_ceiling(surface_colours([_plane_view(ramp)]), _small(), steps=300, batch=1024, loss="l1")
+    data = surface_colours([_plane_view(ramp)])
+    curve = fit_colour_ceiling(data, _small(), steps=300, batch=1024, loss="l1")
     assert len(curve) == 4 and curve[-1].pooled_psnr_db > 40.0
+    rendered = fit_colour_ceiling(data, _small(), steps=300, batch=1024, loss="l1", render="volume")
+    assert rendered[-1].pooled_psnr_db > 35.0
+
+
+def test_volume_colour_of_a_constant_field_is_that_colour_and_reads_around_the_surface() -> None:
+    cfg = _small()
+    field = colour_field(cfg)
+    seen: list[torch.Tensor] = []
+    field.color = lambda x: (seen.append(x), torch.full((len(x), 3), 0.25))[1]  # type: ignore[method-assign]
+    points = torch.tensor([[0.0, 0.0, 2.0], [1.0, 0.0, 1.0]])
+    origins = torch.zeros(2, 3)
+    rgb = volume_colour(field, cfg, points, origins, torch.Generator().manual_seed(0))
+    assert torch.allclose(rgb, torch.full((2, 3), 0.25))
+    dist = torch.linalg.norm(seen[0], dim=1)  # where colour was read: within two sample steps of either surface
+    near = torch.minimum((dist - 2.0).abs(), (dist - math.sqrt(2.0)).abs())
+    assert len(seen[0]) >= 2 and float(near.max()) < 2 * cfg.step_m  # the 5 cm band holds 11 samples a ray
