@@ -9,8 +9,10 @@ It then scores the field at those points. Everything favours the field:
 - it is fitted to exactly the pixels it is scored on, with a squared loss (what PSNR measures), for as many
   steps as asked, where mapping gets a few iterations a frame of 4096 rays spread over many more views.
 
-The PSNR it reaches is therefore an upper bound for any mapping run with that colour representation on those
-views. Views are handled as `h2viz map` scores them: at 1/downscale, ground-truth colour area-averaged.
+The PSNR it reaches is therefore, in practice, an upper bound for mapping runs with that colour representation on
+those views. Views are handled as `h2viz map` scores them: at 1/downscale, ground-truth colour area-averaged.
+Switches bring mapping's own conditions back one at a time: its L1 colour loss, its batch of rays, and
+(`render="volume"`) each pixel volume-rendered from samples 1 cm apart with mapping's weights.
 """
 
 from __future__ import annotations
@@ -116,6 +118,16 @@ def volume_colour(
     return composite(samples, weights, field.color(xyz[live]), live).rgb
 
 
+def _check_fit(steps: int, batch: int, n_reports: int, loss: str, render: str) -> None:
+    """Raise EvalError for fit settings that cannot work."""
+    if steps < 1 or batch < 1 or n_reports < 1:
+        raise EvalError(f"steps ({steps}), batch ({batch}) and n_reports ({n_reports}) must be >= 1")
+    if loss not in LOSSES:
+        raise EvalError(f"unknown colour loss {loss!r}; use one of {', '.join(LOSSES)}")
+    if render not in RENDERS:
+        raise EvalError(f"unknown render {render!r}; use one of {', '.join(RENDERS)}")
+
+
 def fit_colour_ceiling(
     data: SurfaceColours,
     cfg: MappingConfig,
@@ -131,12 +143,7 @@ def fit_colour_ceiling(
     each sample's colour is the field's at its point ("surface") or its pixel volume-rendered ("volume",
     `volume_colour`); score the field at the points `n_reports` times, evenly over the steps (the last after the
     final step)."""
-    if steps < 1 or batch < 1 or n_reports < 1:
-        raise EvalError(f"steps ({steps}), batch ({batch}) and n_reports ({n_reports}) must be >= 1")
-    if loss not in LOSSES:
-        raise EvalError(f"unknown colour loss {loss!r}; use one of {', '.join(LOSSES)}")
-    if render not in RENDERS:
-        raise EvalError(f"unknown render {render!r}; use one of {', '.join(RENDERS)}")
+    _check_fit(steps, batch, n_reports, loss, render)
     field = colour_field(cfg)
     params = [*field.color_grid.parameters(), *field.color_mlp.parameters()]
     optim = torch.optim.Adam(params, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
