@@ -66,11 +66,12 @@ def _weights_kernel(
 def _render_kernel(
     t: np.ndarray, sdf: np.ndarray, offsets: np.ndarray, w: np.ndarray, wsum: np.ndarray,
     live_offsets: np.ndarray, rgb: np.ndarray, live_ids: np.ndarray, rgb_gt: np.ndarray, depth_gt: np.ndarray,
-    tr: float, depth: np.ndarray, color: np.ndarray, live_sum: np.ndarray, per_ray: np.ndarray,
+    tr: float, squared: bool, depth: np.ndarray, color: np.ndarray, live_sum: np.ndarray, per_ray: np.ndarray,
 ) -> None:  # fmt: skip
     """Per ray: rendered depth (R,) and colour (R,3) over live samples (live ids (S',) into the samples, their
-    colours rgb (S',3), live_offsets (R+1,)), live weight sum (R,), and per_ray (R,8) partial loss sums: rgb L1
-    sum, depth L1, free-space mean, SDF mean, and the counts of hit rays, depth rays, fs rays, SDF rays."""
+    colours rgb (S',3), live_offsets (R+1,)), live weight sum (R,), and per_ray (R,8) partial loss sums: rgb
+    error sum (absolute, or squared when `squared`), depth L1, free-space mean, SDF mean, and the counts of hit
+    rays, depth rays, fs rays, SDF rays."""
     for r in numba.prange(offsets.shape[0] - 1):
         lo, hi = offsets[r], offsets[r + 1]
         d = depth_gt[r]
@@ -103,7 +104,8 @@ def _render_kernel(
             per_ray[r, c] = 0.0
         if hit:
             for c in range(3):
-                per_ray[r, 0] += abs(color[r, c] - rgb_gt[r, c])
+                e = color[r, c] - rgb_gt[r, c]
+                per_ray[r, 0] += e * e if squared else abs(e)
             per_ray[r, 4] = 1.0
             if d > 0:
                 per_ray[r, 1] = abs(depth[r] - d)
@@ -116,12 +118,18 @@ def _render_kernel(
             per_ray[r, 7] = 1.0
 
 
+@njit(inline=True)
+def _error_slope(e: float, squared: bool) -> float:
+    """d/de of the colour error: |e| -> sign(e), e^2 -> 2e."""
+    return 2.0 * e if squared else np.sign(e)
+
+
 @njit(parallel=True)
 def _backward_kernel(
     t: np.ndarray, sdf: np.ndarray, offsets: np.ndarray, w: np.ndarray, wsum: np.ndarray,
     live_offsets: np.ndarray, rgb: np.ndarray, live_ids: np.ndarray, rgb_gt: np.ndarray, depth_gt: np.ndarray,
-    tr: float, tau: float, depth: np.ndarray, color: np.ndarray, live_sum: np.ndarray, coef: np.ndarray,
-    g_sdf: np.ndarray, g_rgb: np.ndarray, g_w: np.ndarray,
+    tr: float, tau: float, squared: bool, depth: np.ndarray, color: np.ndarray, live_sum: np.ndarray,
+    coef: np.ndarray, g_sdf: np.ndarray, g_rgb: np.ndarray, g_w: np.ndarray,
 ) -> None:  # fmt: skip
     """Gradients w.r.t. sdf (S,) and the live colours (S',3) of sum_k coef[k] * term_k, where coef holds each
     term's upstream gradient times its weight, already divided by its normalising count; g_w (S,) is scratch."""
@@ -144,12 +152,12 @@ def _backward_kernel(
             e = c_depth * np.sign(depth[r] - d) / total
             for j in range(lo, hi):
                 g_w[j] += e * (t[j] - depth[r])
-        if hit:  # colour L1 through the live samples' normalised weighted mean
+        if hit:  # colour error through the live samples' normalised weighted mean
             lsum = live_sum[r]
             norm = lsum if lsum > 1e-12 else 1.0
-            e0 = c_rgb * np.sign(color[r, 0] - rgb_gt[r, 0]) / norm
-            e1 = c_rgb * np.sign(color[r, 1] - rgb_gt[r, 1]) / norm
-            e2 = c_rgb * np.sign(color[r, 2] - rgb_gt[r, 2]) / norm
+            e0 = c_rgb * _error_slope(color[r, 0] - rgb_gt[r, 0], squared) / norm
+            e1 = c_rgb * _error_slope(color[r, 1] - rgb_gt[r, 1], squared) / norm
+            e2 = c_rgb * _error_slope(color[r, 2] - rgb_gt[r, 2], squared) / norm
             for k in range(live_offsets[r], live_offsets[r + 1]):
                 j = live_ids[k]
                 g_rgb[k, 0], g_rgb[k, 1], g_rgb[k, 2] = e0 * w[j], e1 * w[j], e2 * w[j]
@@ -217,7 +225,8 @@ class _RenderLosses(torch.autograd.Function):
         with parallel_region():
             _render_kernel(
                 rendered.t, rendered.sdf, rendered.offsets, rendered.w, rendered.wsum, rendered.live_offsets,
-                rgb_np, rendered.live_ids, gt, dgt, cfg.truncation_m, depth, color, live_sum, per_ray,
+                rgb_np, rendered.live_ids, gt, dgt, cfg.truncation_m, cfg.rgb_loss == "l2", depth, color, live_sum,
+                per_ray,
             )  # fmt: skip
         sums = per_ray.sum(0, dtype=np.float64)
         counts = np.maximum(sums[4:], 1.0) * np.array([3.0, 1.0, 1.0, 1.0])  # colour averages 3 channels
@@ -239,8 +248,8 @@ class _RenderLosses(torch.autograd.Function):
         with parallel_region():
             _backward_kernel(
                 rendered.t, rendered.sdf, rendered.offsets, rendered.w, rendered.wsum, rendered.live_offsets,
-                rgb_np, rendered.live_ids, gt, dgt, cfg.truncation_m, cfg.render_temperature, depth, color,
-                live_sum, coef, g_sdf, g_rgb, g_w,
+                rgb_np, rendered.live_ids, gt, dgt, cfg.truncation_m, cfg.render_temperature, cfg.rgb_loss == "l2",
+                depth, color, live_sum, coef, g_sdf, g_rgb, g_w,
             )  # fmt: skip
         return torch.from_numpy(g_sdf), torch.from_numpy(g_rgb), None, None, None, None
 

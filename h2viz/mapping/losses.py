@@ -1,12 +1,23 @@
-"""The four H2-Mapping losses on a batch of rays: colour L1, depth L1, free-space and SDF (truncation band)."""
+"""The four H2-Mapping losses on a batch of rays: colour (L1, or L2 by choice), depth L1, free-space and SDF
+(truncation band)."""
 
 from __future__ import annotations
 
 import torch
 
 from h2viz.config import MappingConfig
+from h2viz.errors import ConfigError
 from h2viz.mapping.rendering import RayRender, segment_sum
 from h2viz.mapping.sampling import Samples
+
+RGB_LOSSES: tuple[str, ...] = ("l1", "l2")
+"""mapping.rgb_loss choices: absolute or squared colour error."""
+
+
+def check_rgb_loss(name: str) -> None:
+    """Raise ConfigError for an unknown mapping.rgb_loss."""
+    if name not in RGB_LOSSES:
+        raise ConfigError(f"mapping.rgb_loss: unknown {name!r}; use one of {RGB_LOSSES}")
 
 
 def per_ray_mean(values: torch.Tensor, mask: torch.Tensor, samples: Samples) -> torch.Tensor:
@@ -39,7 +50,8 @@ def mapping_losses(
     ok = render.hit & (depth_gt > 0)
     zero = sdf.sum() * 0.0
     depth = (render.depth - depth_gt).abs()[ok].mean() if bool(ok.any()) else zero
-    rgb = (render.rgb - rgb_gt).abs()[render.hit].mean() if bool(render.hit.any()) else zero
+    error = (render.rgb - rgb_gt)[render.hit]  # (R',3)
+    rgb = (error**2 if cfg.rgb_loss == "l2" else error.abs()).mean() if bool(render.hit.any()) else zero
     terms = {
         "rgb": cfg.w_rgb * rgb,
         "depth": cfg.w_depth * depth,

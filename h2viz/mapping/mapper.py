@@ -15,7 +15,7 @@ from h2viz.config import MappingConfig
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.keyframes import KeyframeSet
-from h2viz.mapping.losses import mapping_losses
+from h2viz.mapping.losses import check_rgb_loss, mapping_losses
 from h2viz.mapping.mesh_job import FrozenField, MeshJob
 from h2viz.mapping.meshing import ChunkedMesher, export_mesh, merge_chunks
 from h2viz.mapping.octree import VoxelOctree
@@ -45,6 +45,7 @@ class Mapper:
     """Octree SDF priors + hash-grid residual field, optimised frame by frame with coverage keyframes."""
 
     def __init__(self, cfg: MappingConfig) -> None:
+        check_rgb_loss(cfg.rgb_loss)
         self.cfg = cfg
         self.device = pick_device(cfg.device)
         if cfg.threads > 0:

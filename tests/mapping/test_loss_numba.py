@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from h2viz.config import MappingConfig
+from h2viz.errors import ConfigError
 from h2viz.mapping import losses
 from h2viz.mapping.rendering import composite, live_samples, render_weights
 from h2viz.mapping.sampling import Samples
@@ -39,9 +40,9 @@ def _batch(seed: int) -> tuple[Samples, torch.Tensor, torch.Tensor, torch.Tensor
     return samples, torch.from_numpy(sdf), colours, rgb_gt, torch.from_numpy(depth)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_fused_render_losses_match_the_torch_reference(seed: int) -> None:
-    cfg = MappingConfig()
+@pytest.mark.parametrize(("seed", "rgb_loss"), [(0, "l1"), (1, "l1"), (2, "l1"), (0, "l2"), (1, "l2")])
+def test_fused_render_losses_match_the_torch_reference(seed: int, rgb_loss: str) -> None:
+    cfg = MappingConfig(rgb_loss=rgb_loss)
     samples, sdf0, colours, rgb_gt, depth_gt = _batch(seed)
     sdf_ref = sdf0.clone().requires_grad_()
     col_ref = colours.clone().requires_grad_()
@@ -73,3 +74,23 @@ def test_a_batch_without_samples_gives_zero_terms() -> None:
     assert all(float(v.detach()) == 0.0 for v in got.values())
     got["total"].backward()
     assert sdf.grad.shape == (0,)
+
+
+@pytest.mark.parametrize(("rgb_loss", "error"), [("l1", 0.1), ("l2", 0.01)])
+def test_colour_term_is_the_mean_absolute_or_squared_error(rgb_loss: str, error: float) -> None:
+    cfg = MappingConfig(rgb_loss=rgb_loss)
+    R = 4  # one sample a ray, on the surface: each ray renders its sample's colour, 0.1 off in every channel
+    samples = Samples(torch.zeros(R, 3), torch.ones(R), torch.arange(R), torch.zeros(R, dtype=torch.long), R)
+    colours = torch.full((R, 3), 0.5)
+    rgb_gt = colours + torch.tensor([0.1, -0.1, 0.1])
+    sdf = torch.zeros(R)
+    got = fused.mapping_losses(samples, sdf, lambda p: colours[: len(p)], rgb_gt, torch.ones(R), cfg)
+    w = render_weights(samples, sdf, cfg.truncation_m, cfg.render_temperature)
+    ref = losses.mapping_losses(samples, sdf, composite(samples, w, colours), rgb_gt, torch.ones(R), cfg)
+    assert float(got["rgb"]) == pytest.approx(cfg.w_rgb * error, rel=1e-5)
+    assert float(ref["rgb"]) == pytest.approx(cfg.w_rgb * error, rel=1e-5)
+
+
+def test_an_unknown_colour_loss_is_refused_by_name() -> None:
+    with pytest.raises(ConfigError, match="mapping.rgb_loss: unknown 'huber'"):
+        losses.check_rgb_loss("huber")
