@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import DATASETS, MissingData, command_line, dataset_config, fmt, markdown_table, pick  # noqa: E402
 from h2viz.config import Config, MappingConfig, apply_overrides, load_config  # noqa: E402
+from h2viz.errors import H2vizError  # noqa: E402
 from h2viz.eval.ceiling import (  # noqa: E402
     LOSSES,
     RENDERS,
@@ -127,7 +128,11 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[list[str]] = []
     for name, cfg in configs(args):
         torch.set_num_threads(args.threads or cfg.mapping.threads or torch.get_num_threads())
-        data = load_views(cfg)
+        try:
+            data = load_views(cfg)
+        except H2vizError as err:  # a missing or unreadable source: say which, go on with the others
+            print(f"{name}: skipped ({err})")
+            continue
         print(f"{name}: {len(data.points)} samples from {int(data.view.max()) + 1} views", flush=True)
         if args.run is not None:
             rows.append(run_row(args.run, cfg, data))

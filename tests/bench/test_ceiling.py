@@ -43,3 +43,10 @@ def test_ceiling_of_a_run_scores_its_own_field_first(tmp_path: Path, capsys: pyt
 def test_ceiling_names_a_run_without_checkpoint(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert ceiling.main(["--run", str(tmp_path)]) == 2
     assert "checkpoint.pt is missing" in capsys.readouterr().out
+
+
+def test_ceiling_skips_an_unreadable_source_by_name(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--steps", "1", "--set", "source.format=tum", "--set", "source.path=/nonexistent/h2viz-data"]
+    assert ceiling.main(args) == 0
+    out = capsys.readouterr().out
+    assert "synthetic: skipped (/nonexistent/h2viz-data does not exist" in out
