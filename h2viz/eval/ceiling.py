@@ -18,13 +18,13 @@ Switches bring mapping's own conditions back one at a time: its L1 colour loss, 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from h2viz.config import MappingConfig
-from h2viz.eval.metrics import EvalError
+from h2viz.eval.metrics import EvalError, psnr
 from h2viz.eval.report import EvalView, scale_intrinsics, shrink_view
 from h2viz.geometry import backproject
 from h2viz.mapping.field import HybridField
@@ -77,7 +77,7 @@ class CeilingPoint:
 def colour_field(cfg: MappingConfig) -> HybridField:
     """The mapping's field for `cfg`; only its colour grid and decoder are used here."""
     torch.manual_seed(cfg.seed)
-    return HybridField(replace(cfg, priors=False))
+    return HybridField(cfg)
 
 
 @torch.no_grad()
@@ -88,14 +88,10 @@ def predict(field: HybridField, points: np.ndarray) -> np.ndarray:
 
 
 def score(pred: np.ndarray, data: SurfaceColours) -> tuple[float, float]:
-    """(pooled PSNR, mean per-view PSNR) in dB of predicted colours (N,3) against the samples."""
-    sq = np.sum((pred.astype(np.float64) - data.rgb) ** 2, axis=1)  # (N,) summed over channels
-    n_views = int(data.view.max()) + 1
-    per_view_sq = np.bincount(data.view, weights=sq, minlength=n_views)
-    per_view_n = 3 * np.bincount(data.view, minlength=n_views)
-    seen = per_view_n > 0
-    mean_view = float(np.mean(-10 * np.log10(np.maximum(per_view_sq[seen] / per_view_n[seen], 1e-10))))
-    return float(-10 * np.log10(max(sq.sum() / (3 * len(sq)), 1e-10))), mean_view
+    """(pooled PSNR, mean per-view PSNR) in dB of predicted colours (N,3) against the samples, by `metrics.psnr`."""
+    image, truth = pred[None], data.rgb[None]  # (1,N,3): the samples as one row of pixels
+    per_view = [psnr(image, truth, (data.view == v)[None]) for v in np.unique(data.view)]
+    return psnr(image, truth), float(np.mean(per_view))
 
 
 def volume_colour(
