@@ -59,6 +59,14 @@ DATASETS: dict[str, Dataset] = {
     "redkitchen": Dataset(
         "redkitchen", "redkitchen_50", "7scenes", "", "7-Scenes, Kinect v1; no ground-truth mesh: image metrics only"
     ),
+    "icl": Dataset(
+        "icl",
+        "icl_livingroom1_211",
+        "7scenes",
+        "",
+        "Augmented ICL-NUIM livingroom1, 211 frames of a rendered living room with clean synthetic depth; "
+        "no ground-truth mesh: image metrics only",
+    ),
 }
 
 
