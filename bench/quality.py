@@ -3,9 +3,11 @@ built-in synthetic room and the real sequences in ../shared/data, in one markdow
 
 Every method maps the same frames and goes through the same evaluation (`h2viz.pipeline.evaluate`):
 mesh Acc / Comp / Comp ratio against the ground-truth mesh culled to what the frames observed, and depth L1 /
-PSNR / SSIM on the same interpolated (training) and extrapolated (novel) views. h2viz renders its field; the
-TSDF baseline renders its coloured mesh (ray casting). Times are per-frame mapping (h2viz) or integration
-(TSDF) times, frame loading and final meshing excluded.
+PSNR / SSIM on the same interpolated (training) and extrapolated (novel) views. Every --heldout-k-th frame is
+not mapped: each method renders those cameras and is scored against the captured frames on its own rendered
+pixels (bench/heldout.py's scoring; that benchmark also compares methods on their common pixels). h2viz renders
+its field; the TSDF baseline renders its coloured mesh (ray casting). Times are per-frame mapping (h2viz) or
+integration (TSDF) times, frame loading and final meshing excluded.
 
     .venv/bin/python bench/quality.py                                      # everything, every frame
     .venv/bin/python bench/quality.py --datasets synthetic --methods h2viz,tsdf --frames 8 \\
@@ -30,6 +32,7 @@ import trimesh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import DATASETS, Dataset, command_line, dataset_config, fmt, markdown_table, pick  # noqa: E402
+from bench.heldout import frame_view, heldout_split, is_heldout, own_scores  # noqa: E402
 from bench.tsdf_baseline import TsdfConfig, TsdfFusion, import_open3d  # noqa: E402
 from h2viz.config import Config, apply_overrides, dump_config, load_config  # noqa: E402
 from h2viz.errors import H2vizError  # noqa: E402
@@ -55,7 +58,8 @@ ground-truth mesh itself: the floor of Comp set by the point sampling, and the i
 mesh against the captured frames."""
 
 COLUMNS = ["method", "dataset", "Acc (cm)", "Comp (cm)", "Comp ratio (%)", "depth L1 (cm)", "PSNR (dB)", "SSIM"]
-COLUMNS += ["ext depth L1 (cm)", "ext PSNR (dB)", "median s/frame", "frames"]
+COLUMNS += ["ext depth L1 (cm)", "ext PSNR (dB)", "held-out PSNR (dB)", "held-out depth L1 (cm)", "median s/frame"]
+COLUMNS += ["frames"]
 
 
 class Fusion(Protocol):
@@ -112,14 +116,16 @@ class GroundTruthMesh:
         return self.gt, self.renderer
 
     def meaningful(self, metrics: dict[str, Any]) -> dict[str, Any]:
-        """What a perfect mesh tells: Comp (the sampling floor) and the training views (their colour only when
-        the mesh has colours). Its Acc counts the parts nobody observed; its novel views are their own reference."""
+        """What a perfect mesh tells: Comp (the sampling floor) and the captured views, training and held out
+        (their colour only when the mesh has colours). Its Acc counts the parts nobody observed; its novel views
+        are their own reference."""
         keep = ("comp_cm", "comp_ratio", "recall", "n_gt_points", "gt_kept_pct")
-        mesh = {k: v for k, v in metrics.get("mesh", {}).items() if k in keep}
-        interp = dict(metrics.get("interpolate", {}))
-        if np.ptp(self.renderer.vertex_rgb, axis=0).max() < 1e-6:  # one flat colour: the mesh has none
-            interp = {k: v for k, v in interp.items() if k not in ("psnr_db", "ssim")}
-        return {"mesh": mesh, "interpolate": interp}
+        out: dict[str, Any] = {"mesh": {k: v for k, v in metrics.get("mesh", {}).items() if k in keep}}
+        flat = np.ptp(self.renderer.vertex_rgb, axis=0).max() < 1e-6  # one flat colour: the mesh has none
+        for part in ("interpolate", "heldout"):
+            if part in metrics:
+                out[part] = {k: v for k, v in metrics[part].items() if not (flat and k in ("psnr_db", "ssim"))}
+        return out
 
 
 @dataclass
@@ -149,9 +155,11 @@ class Row:
         mesh = self.metrics.get("mesh", {})
         interp = self.metrics.get("interpolate", {})
         ext = self.metrics.get("extrapolate", {})
+        held = self.metrics.get("heldout", {})
         values = [mesh.get("acc_cm"), mesh.get("comp_cm"), mesh.get("comp_ratio"), interp.get("depth_l1_cm")]
         values += [interp.get("psnr_db"), interp.get("ssim"), ext.get("depth_l1_cm"), ext.get("psnr_db")]
-        digits = [2, 2, 1, 2, 2, 3, 2, 2]
+        values += [held.get("psnr_db"), held.get("depth_l1_cm")]
+        digits = [2, 2, 1, 2, 2, 3, 2, 2, 2, 2]
         cells = [fmt(v, d) for v, d in zip(values, digits, strict=True)]
         return [
             self.method,
@@ -178,19 +186,24 @@ def _fusion(method: str, cfg: Config, args: argparse.Namespace, gt: trimesh.Trim
 
 
 def run_one(method: str, ds: Dataset, args: argparse.Namespace) -> Row:
-    """Map (or fuse) the dataset's frames with one method, evaluate, and keep the outputs."""
+    """Map (or fuse) the dataset's frames but the held-out ones with one method, evaluate, and keep the outputs."""
     row = Row(method, ds.name)
     if method == "tsdf":
         import_open3d()  # TsdfUnavailable with the install command, before any work
     cfg = _config(ds, method, args)
     gt_path = ds.gt_mesh_path()
     source = make_source(cfg.source)
+    held: list[RgbdFrame] = []
     try:
         gt = load_mesh(gt_path) if gt_path is not None else source.ground_truth_mesh()
         fusion = _fusion(method, cfg, args, gt)
-        eval_frames = EvalFrames(len(source), cfg.eval.n_interpolate)
+        mapped, _ = heldout_split(len(source), args.heldout_k)
+        eval_frames = EvalFrames(len(mapped), cfg.eval.n_interpolate)  # training views among the mapped frames
         for position, frame in enumerate(source):
-            eval_frames.add(position, frame)
+            if is_heldout(position, args.heldout_k):
+                held.append(frame)
+                continue
+            eval_frames.add(len(row.frame_times_s), frame)
             row.frame_times_s.append(fusion.integrate(frame))
     finally:
         getattr(source, "close", lambda: None)()
@@ -199,6 +212,8 @@ def run_one(method: str, ds: Dataset, args: argparse.Namespace) -> Row:
     mesh, render = fusion.result()
     row.mesh_time_s = time.perf_counter() - start
     row.metrics = evaluate(RenderOnly(render), mesh, gt, eval_frames, cfg)  # type: ignore[arg-type]
+    if held:
+        row.metrics["heldout"] = own_scores(render, [frame_view(f) for f in held], cfg.eval.render_downscale)
     if isinstance(fusion, GroundTruthMesh):
         row.metrics = fusion.meaningful(row.metrics)
     _save(row, mesh, cfg)
@@ -241,6 +256,8 @@ def report(rows: list[Row]) -> str:
     lines += [f"- {r.method} on {r.dataset} did not run: {r.note}" for r in rows if r.note]
     lines.append("- Acc/Comp/Comp ratio: mesh vs ground truth culled to what the frames observed, Comp ratio at 5 cm;")
     lines.append("  depth L1/PSNR/SSIM on interpolated (training) views, ext = extrapolated novel views;")
+    lines.append("  held-out = the captured frames left out of mapping (--heldout-k), on each method's own rendered")
+    lines.append("  pixels (bench/heldout.py compares methods on their common pixels);")
     lines.append("  h2viz renders its field, tsdf and gt their mesh; s/frame = mapping (h2viz) or integration (tsdf);")
     lines.append("  gt = the ground-truth mesh itself: its Comp is the floor set by sampling eval.n_points points,")
     lines.append("  its images the best a mesh does against the captured frames.")
@@ -264,7 +281,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--json", default=None, help="also write every row (all metrics, per-frame times) to this file")
     p.add_argument("--tsdf-voxel-m", type=float, default=0.01, help="TSDF voxel size (default 1 cm)")
     p.add_argument("--tsdf-trunc-voxels", type=float, default=5.0, help="TSDF truncation in voxels (default 5)")
-    return p.parse_args(argv)
+    p.add_argument(
+        "--heldout-k",
+        type=int,
+        default=10,
+        help="leave every k-th frame (from position k // 2) out of mapping and score it (default 10; 0 = map all)",
+    )
+    args = p.parse_args(argv)
+    if args.heldout_k == 1 or args.heldout_k < 0:
+        p.error(f"--heldout-k {args.heldout_k}: use 0 (map every frame) or k >= 2")
+    return args
 
 
 def main(argv: list[str] | None = None) -> int:
