@@ -123,7 +123,8 @@ def pixel_scores(
 ) -> dict[str, float]:
     """PSNR (dB), SSIM, depth L1 (cm), share of pixels whose depth is off by more than BAD_DEPTH_M (%) and mean
     signed depth error (cm, rendered minus captured: negative = in front of the captured surface) of one rendered
-    view, rgb (h,w,3) and depth (h,w), over `mask` (h,w); NaN where the mask is empty."""
+    view, rgb (h,w,3) and depth (h,w), over `mask` (h,w): pixels where both depths are valid (`rendered_mask` or
+    `common_mask`); NaN where the mask is empty. coverage_pct: the mask's share of the captured pixels."""
     colour = np.clip(rgb, 0.0, 1.0)
     error_m = depth[mask].astype(np.float64) - gt_depth[mask].astype(np.float64)  # (P,)
     empty = len(error_m) == 0
