@@ -144,6 +144,11 @@ class MappingConfig:
     """Resolution ratio between adjacent levels."""
     hash_base_resolution_m: float = 0.1
     """Cell size of the coarsest level (the leaf voxel size by default)."""
+    color_hash_levels: int = 0
+    """Levels of the colour hash grid (same coarsest cell and scale as the geometry grid's; 0 = hash_levels): each
+    added level is twice as fine, for texture detail finer than the geometry needs."""
+    color_hash_log2_size: int = 0
+    """log2 T of the colour hash grid's tables (0 = hash_log2_size)."""
     kernels: str = "auto"
     """auto: the fused numba kernels on the CPU (frame rays, samples, hash grids, prior, geometry decoder, rendering
     and losses) when numba imports, else pure torch; torch: always the pure-torch path (the reference)."""
@@ -155,6 +160,10 @@ class MappingConfig:
     """Largest correction of the prior SDF by the hash grid, in truncation units: residual = b * tanh(r / b)
     (0 = unbounded; priors off = unbounded). The free-space loss pulls the SDF to tr in front of surfaces, and
     an unbounded residual carries that pull into unobserved parts of voxels as spurious surfaces."""
+    color_prior: bool = True
+    """Explicit colour priors: every frame's pixel colours averaged on a 1.25 cm lattice in each voxel (at 10 cm
+    voxels; h2viz.mapping.color_prior), the colour network learning the residual of their logit, as the hash grid
+    learns the residual of the SDF priors (false = the paper: the network learns colour alone)."""
     color_hidden: int = 64
     """Width of the colour decoder's hidden layers."""
     color_layers: int = 2
@@ -171,6 +180,10 @@ class MappingConfig:
     band_m: float = 0.15
     """Training samples from this far in front of the measured depth to tr behind it: every step_m within tr of
     the depth..."""
+    band_behind_m: float = 0.02
+    """...to this far behind it (the paper: tr). Behind a surface a ray's distance to its hit overstates how deep a
+    sample is, and at edges the samples a grazing ray calls "inside" lie outside the object: a short band keeps
+    them from fattening silhouettes..."""
     band_front_step_m: float = 0.05
     """...and every this far (rounded to tile the span) from band_m to tr in front of it, where only the
     free-space loss acts..."""
@@ -179,6 +192,11 @@ class MappingConfig:
     (-1 = instead sample every step_m of every allocated voxel the ray crosses, as the paper does)."""
     render_temperature: float = 0.05
     """tau in the rendering weights sigmoid(s/tau)*sigmoid(-s/tau), s in truncation units."""
+    render_surface: bool = True
+    """Rendered images (dashboard, evaluation, exports) show each ray's first zero crossing of the SDF, with the
+    colour there, under the mesher's rules (mesh_prior_band, mesh_observed_only): silhouettes as sharp as the mesh
+    and nothing drawn where no depth was observed. false = the paper's volume rendering (weighted mean depth and
+    colour over the samples near the surface), which smears depth across silhouettes."""
     n_keyframes: int = 10
     """K: keyframes optimised together with the current frame."""
     keyframe_iou: float = 0.85
@@ -197,7 +215,13 @@ class MappingConfig:
     """Adam learning rate for priors, hash tables and decoders."""
     w_rgb: float = 0.5
     """Weight of the colour loss."""
-    rgb_loss: str = "l1"
+    color_supervision: str = "surface"
+    """Where colour is learned: surface = the colour field at each ray's measured surface point (camera + depth along
+    the ray) against the pixel's colour, on a batch of its own (color_rays_per_iter rays; one colour evaluation a
+    ray, none in the geometry batch); volume = the paper's volume-rendered colour of the geometry batch's rays."""
+    color_rays_per_iter: int = 16384
+    """Rays of the colour batch per iteration with color_supervision: surface."""
+    rgb_loss: str = "l2"
     """Colour loss per ray: l1 = mean absolute error over the channels (the reference implementation's); l2 = mean
     squared error, which learns colour faster from the same rays (PSNR +0.9 dB on the whole synthetic sequence,
     +0.8 dB on redkitchen_50; README, "Where quality is lost")."""

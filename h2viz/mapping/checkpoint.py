@@ -51,6 +51,7 @@ def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = N
         "priors_init": mapper.priors.state_dict(),
         "observed": mapper.observed.state_dict(),
         "priors": mapper.field.priors.detach().cpu(),
+        "color_prior": None if mapper.field.color_prior is None else mapper.field.color_prior.sums.cpu().clone(),
         "field": {k: v.cpu() for k, v in mapper.field.state_dict().items()},
         "optim": mapper.optim.state_dict(),
         "net_optim": mapper.net_optim.state_dict(),
@@ -96,10 +97,13 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
             hash_features=saved.hash_features,
             hash_log2_size=saved.hash_log2_size,
             hash_scale=saved.hash_scale,
+            color_hash_levels=saved.color_hash_levels,
+            color_hash_log2_size=saved.color_hash_log2_size,
             geo_hidden=saved.geo_hidden,
             geo_layers=saved.geo_layers,
             color_hidden=saved.color_hidden,
             color_layers=saved.color_layers,
+            color_prior=saved.color_prior,
             priors=saved.priors,
         )
     mapper = Mapper(saved)
@@ -108,6 +112,8 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
     mapper.field.sync(mapper.octree)
     mapper.field.load_state_dict(state["field"])
     mapper.field.priors = state["priors"].to(mapper.device).requires_grad_(saved.priors)
+    if mapper.field.color_prior is not None and state.get("color_prior") is not None:
+        mapper.field.color_prior.sums = state["color_prior"].to(mapper.device)
     mapper.optim.load_state_dict(state["optim"])
     mapper.net_optim.load_state_dict(state["net_optim"])
     mapper.keyframes.load_state_dict(state["keyframes"])

@@ -11,6 +11,7 @@ from torch import nn
 
 from h2viz.config import MappingConfig
 from h2viz.mapping.bf16 import decode_bf16, use_bf16
+from h2viz.mapping.color_prior import ColorPrior
 from h2viz.mapping.encoding import HashGrid
 from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.octree import VoxelOctree
@@ -36,14 +37,20 @@ class HybridField(nn.Module):
         base = cfg.hash_base_resolution_m or cfg.voxel_size_m
         grid = dict(n_levels=cfg.hash_levels, n_features=cfg.hash_features, log2_size=cfg.hash_log2_size)
         self.geo_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale, kernels=cfg.kernels)
-        self.color_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale, kernels=cfg.kernels)
+        color = dict(
+            n_levels=cfg.color_hash_levels or cfg.hash_levels,
+            n_features=cfg.hash_features,
+            log2_size=cfg.color_hash_log2_size or cfg.hash_log2_size,
+        )
+        self.color_grid = HashGrid(**color, base_cell_m=base, scale=cfg.hash_scale, kernels=cfg.kernels)
         self.geo_mlp = mlp(self.geo_grid.output_dim, cfg.geo_hidden, cfg.geo_layers, 1)
         self.color_mlp = mlp(self.color_grid.output_dim, cfg.color_hidden, cfg.color_layers, 3)
         with torch.no_grad():  # the residual starts near zero so the priors rule at first
-            last = self.geo_mlp[-1]
-            assert isinstance(last, nn.Linear)
-            last.weight.mul_(0.01)
-            last.bias.zero_()
+            for net in (self.geo_mlp, self.color_mlp) if cfg.color_prior else (self.geo_mlp,):
+                last = net[-1]
+                assert isinstance(last, nn.Linear)
+                last.weight.mul_(0.01)
+                last.bias.zero_()
         self.voxel_size_m = cfg.voxel_size_m
         self.kernels = cfg.kernels
         self.color_bf16 = use_bf16(cfg.color_precision)  # applies on the CPU only
@@ -52,6 +59,8 @@ class HybridField(nn.Module):
         # Corners without a prior start as free space at the truncation distance: a zero would put a
         # surface on every corner whose projection failed.
         self.unset_prior = 1.0 if cfg.priors else 0.0
+        self.color_prior = ColorPrior(cfg.voxel_size_m, fused=cfg.kernels == "auto") if cfg.color_prior else None
+        self.octree: VoxelOctree | None = None  # where the colour prior looks points up (set by sync)
         self.priors = torch.zeros(0)  # (C,) corner SDF in tr units, grows with the octree
         self.corner_ids = torch.zeros(0, 8, dtype=torch.long)  # (V,8)
         self.voxel_origin = torch.zeros(0, 3)  # (V,3) metres, min corner of each voxel
@@ -66,6 +75,15 @@ class HybridField(nn.Module):
         if octree.n_voxels != self.corner_ids.shape[0]:
             self.corner_ids = torch.from_numpy(octree.voxel_corners).to(dev)
             self.voxel_origin = torch.from_numpy(octree.voxel_coords()).to(dev, torch.float32) * self.voxel_size_m
+        if self.color_prior is not None:
+            self.color_prior.to(dev)
+            self.color_prior.grow(octree.n_voxels)
+        self.octree = octree
+
+    def add_colors(self, points: torch.Tensor, rgb: torch.Tensor) -> None:
+        """Splat measured colours rgb (N,3) in [0,1] at surface points (N,3) into the colour prior (if any)."""
+        if self.color_prior is not None and self.octree is not None:
+            self.color_prior.add(self.octree, self.voxel_origin, points, rgb)
 
     def prior_sdf(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
         """Trilinear interpolation of the 8 corner priors of each point's voxel: (N,3), (N,) -> (N,)."""
@@ -108,11 +126,15 @@ class HybridField(nn.Module):
         return b * torch.tanh(raw / b) if b > 0 else raw
 
     def color(self, points: torch.Tensor) -> torch.Tensor:
-        """RGB in [0,1] (N,3)."""
+        """RGB in [0,1] (N,3): sigmoid(logit(colour prior) + MLP_c(hash_c(x))), without a prior sigmoid(MLP_c(...))."""
         features = self.color_grid(points)  # (N, L*F)
         if self.color_bf16 and features.device.type == "cpu":
-            return torch.sigmoid(decode_bf16(self.color_mlp, features))
-        return torch.sigmoid(self._decode(self.color_mlp, features))
+            raw = decode_bf16(self.color_mlp, features)
+        else:
+            raw = self._decode(self.color_mlp, features)
+        if self.color_prior is not None and self.octree is not None:
+            raw = raw + self.color_prior.logit(self.octree, self.voxel_origin, points).to(raw.device)
+        return torch.sigmoid(raw)
 
     def forward(self, points: torch.Tensor, voxel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.sdf(points, voxel), self.color(points)

@@ -14,10 +14,24 @@ RGB_LOSSES: tuple[str, ...] = ("l1", "l2")
 """mapping.rgb_loss choices: absolute or squared colour error."""
 
 
-def check_rgb_loss(name: str) -> None:
-    """Raise ConfigError for an unknown mapping.rgb_loss."""
+COLOR_SUPERVISION: tuple[str, ...] = ("surface", "volume")
+"""mapping.color_supervision choices: colour at each ray's measured surface point, or volume-rendered colour."""
+
+
+def check_rgb_loss(name: str, supervision: str = "volume") -> None:
+    """Raise ConfigError for an unknown mapping.rgb_loss or mapping.color_supervision."""
     if name not in RGB_LOSSES:
         raise ConfigError(f"mapping.rgb_loss: unknown {name!r}; use one of {RGB_LOSSES}")
+    if supervision not in COLOR_SUPERVISION:
+        raise ConfigError(f"mapping.color_supervision: unknown {supervision!r}; use one of {COLOR_SUPERVISION}")
+
+
+def color_error(pred: torch.Tensor, target: torch.Tensor, squared: bool) -> torch.Tensor:
+    """Mean colour error over rays and channels: pred, target (R,3) in [0,1] -> () (zero for no rays)."""
+    if pred.shape[0] == 0:
+        return pred.sum() * 0.0
+    error = pred - target
+    return (error**2 if squared else error.abs()).mean()
 
 
 def per_ray_mean(values: torch.Tensor, mask: torch.Tensor, samples: Samples) -> torch.Tensor:
@@ -50,8 +64,7 @@ def mapping_losses(
     ok = render.hit & (depth_gt > 0)
     zero = sdf.sum() * 0.0
     depth = (render.depth - depth_gt).abs()[ok].mean() if bool(ok.any()) else zero
-    error = (render.rgb - rgb_gt)[render.hit]  # (R',3)
-    rgb = (error**2 if cfg.rgb_loss == "l2" else error.abs()).mean() if bool(render.hit.any()) else zero
+    rgb = color_error(render.rgb[render.hit], rgb_gt[render.hit], cfg.rgb_loss == "l2")
     terms = {
         "rgb": cfg.w_rgb * rgb,
         "depth": cfg.w_depth * depth,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -15,7 +16,7 @@ from h2viz.config import MappingConfig
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.keyframes import KeyframeSet
-from h2viz.mapping.losses import check_rgb_loss, mapping_losses
+from h2viz.mapping.losses import check_rgb_loss, color_error, mapping_losses
 from h2viz.mapping.mesh_job import FrozenField, MeshJob
 from h2viz.mapping.meshing import ChunkedMesher, export_mesh, merge_chunks
 from h2viz.mapping.octree import VoxelOctree
@@ -33,6 +34,10 @@ OBSERVED_POINTS = 60_000
 """Depth points a frame marks observed cells with (every k-th valid one): a fifth of a 640x480 frame, which at
 70 deg stays about as dense as the 1.25 cm cells up to 3 m away, for ~4 ms a frame instead of ~15."""
 
+COLOR_POINTS = 160_000
+"""Pixels a frame adds to the colour prior (every k-th valid one): about half of a 640x480 frame, still several
+pixels a 1.25 cm lattice cell up to 4 m away at 70 deg, for ~15 ms a frame instead of ~30."""
+
 
 def pick_device(name: str) -> torch.device:
     """'auto' -> CUDA when present, else CPU."""
@@ -45,8 +50,10 @@ class Mapper:
     """Octree SDF priors + hash-grid residual field, optimised frame by frame with coverage keyframes."""
 
     def __init__(self, cfg: MappingConfig) -> None:
-        check_rgb_loss(cfg.rgb_loss)
+        check_rgb_loss(cfg.rgb_loss, cfg.color_supervision)
         self.cfg = cfg
+        self.surface_color = cfg.color_supervision == "surface"
+        self.geometry_cfg = replace(cfg, w_rgb=0.0) if self.surface_color else cfg  # the geometry batch's losses
         self.device = pick_device(cfg.device)
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)
@@ -97,6 +104,7 @@ class Mapper:
             alloc = self.octree.allocate(points)  # voxels with > 10 points (+ expanded neighbours)
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
             self._init_priors(frame)  # project new corners into the depth image
+            self._add_colors(points, rays)  # the colour prior averages the frame's pixel colours
             self.observed.add(self.octree, points[:: max(1, len(points) // OBSERVED_POINTS)])  # for meshing
         with timer("keyframes"):
             if self.keyframes.should_insert(frame.index, alloc.observed):  # IoU / max-gap rule
@@ -144,6 +152,14 @@ class Mapper:
         self.priors.grow(self.octree.n_corners, new_voxels)
         self.touched = np.concatenate([self.touched, np.zeros(self.octree.n_voxels - self.touched.size, bool)])
 
+    def _add_colors(self, points: np.ndarray, rays: FrameRays) -> None:
+        """Splat the colours of up to COLOR_POINTS of the frame's valid pixels (every k-th) into the colour prior."""
+        if self.field.color_prior is None:
+            return
+        k = max(1, -(-len(points) // COLOR_POINTS))
+        rgb = rays.rgb[::k].to(self.device).float() / 255.0  # (P/k,3)
+        self.field.add_colors(torch.from_numpy(points[::k]).to(self.device), rgb)
+
     @torch.no_grad()
     def _init_priors(self, frame: RgbdFrame) -> None:
         cids, vals = self.priors.initialize(self.octree, frame.depth_m, frame.K, frame.T_world_camera)
@@ -182,9 +198,9 @@ class Mapper:
         c = self.cfg
         batch = self._batch(frames)
         if c.free_samples < 0:  # every 1 cm of every allocated voxel the ray crosses
-            far = batch.depth + c.truncation_m
+            far = batch.depth + c.band_behind_m
             return sample_rays(self.octree, batch.origins, batch.dirs, far, c.step_m, True), batch
-        layout = BandLayout(c.band_m, c.truncation_m, c.step_m, c.band_front_step_m, c.free_samples)
+        layout = BandLayout(c.band_m, c.truncation_m, c.step_m, c.band_front_step_m, c.free_samples, c.band_behind_m)
         samples = band_samples(
             self.octree, batch.origins, batch.dirs, batch.depth, layout, self.rng, fused=c.kernels == "auto"
         )
@@ -200,6 +216,9 @@ class Mapper:
         with timer("forward"):
             sdf = self.field.sdf(samples.points, samples.voxel)  # (S,) truncation units
             terms = self._losses(samples, sdf, batch)
+            if self.surface_color:
+                terms["rgb"] = self._surface_color_loss(frames)
+                terms["total"] = terms["total"] + terms["rgb"]
         with timer("backward"):
             self.optim.zero_grad()
             self.net_optim.zero_grad()
@@ -209,17 +228,33 @@ class Mapper:
             self.net_optim.step()
         return {k: v.detach() for k, v in terms.items()}
 
+    def _surface_color_loss(self, frames: list[FrameRays]) -> torch.Tensor:
+        """The colour loss of a batch of its own: the colour field at each ray's measured surface point (camera +
+        depth along the z-normalised ray) against the pixel's colour; gradients reach only the colour branch."""
+        n = max(1, self.cfg.color_rays_per_iter // len(frames))
+        batch = sample_frames(frames, n, self.rng, fused=self.cfg.kernels == "auto")
+        points = batch.origins + batch.dirs * batch.depth[:, None]  # (R,3)
+        rgb = self.field.color(points)  # (R,3)
+        return self.cfg.w_rgb * color_error(rgb, batch.rgb, self.cfg.rgb_loss == "l2")
+
     def _losses(self, samples: Samples, sdf: torch.Tensor, batch: RayBatch) -> dict[str, torch.Tensor]:
-        """Render the batch (colour evaluated only where the weights matter) and take the four losses: the fused
-        kernels on the CPU (h2viz.mapping.loss_numba), else the torch functions they reproduce."""
-        fused = kernel_module("loss_numba") if self.cfg.kernels == "auto" and self.device.type == "cpu" else None
+        """Render the batch and take the four losses (colour evaluated only where the weights matter, not at all when
+        colour has a batch of its own): the fused kernels on the CPU (h2viz.mapping.loss_numba), else the torch
+        functions they reproduce."""
+        cfg = self.geometry_cfg
+        color = self._no_color if self.surface_color else self.field.color
+        fused = kernel_module("loss_numba") if cfg.kernels == "auto" and self.device.type == "cpu" else None
         if fused is not None:
-            return fused.mapping_losses(samples, sdf, self.field.color, batch.rgb, batch.depth, self.cfg)
-        weights = render_weights(samples, sdf, self.cfg.truncation_m, self.cfg.render_temperature)  # (S,)
+            return fused.mapping_losses(samples, sdf, color, batch.rgb, batch.depth, cfg)
+        weights = render_weights(samples, sdf, cfg.truncation_m, cfg.render_temperature)  # (S,)
         live = live_samples(samples, weights)  # (S',)
-        rgb = self.field.color(samples.points[live])  # (S',3)
-        render = composite(samples, weights, rgb, live)
-        return mapping_losses(samples, sdf, render, batch.rgb, batch.depth, self.cfg)
+        render = composite(samples, weights, color(samples.points[live]), live)  # colour (S',3) of the live samples
+        return mapping_losses(samples, sdf, render, batch.rgb, batch.depth, cfg)
+
+    @staticmethod
+    def _no_color(points: torch.Tensor) -> torch.Tensor:
+        """A constant colour (N,3) without gradient, for a geometry batch whose colour is not learned."""
+        return torch.zeros(points.shape[0], 3, device=points.device)
 
     # ------------------------------------------------------------------------------------- outputs
     @torch.no_grad()
@@ -337,4 +372,21 @@ class Mapper:
         if self.cfg.priors:
             trusted = torch.ones(self.octree.n_voxels, dtype=torch.bool)
             trusted[torch.from_numpy(self.priors.pending)] = False
-        return render_image(self.field, self.octree, K, T_world_camera, height, width, mode, params, trusted)
+        support = self.drawable() if params.surface else None
+        args = (self.field, self.octree, K, T_world_camera, height, width, mode, params, trusted)
+        return render_image(*args, support=support)
+
+    def drawable(self) -> Callable[[np.ndarray], np.ndarray]:
+        """Which world points (N,3) the mesher would draw a face at, (N,) bool: near observed depth (strictly in
+        its own cell where a voxel's priors are incomplete) with mesh_observed_only, else in voxels whose corners
+        all hold priors."""
+        initialised = self.priors.initialised(self.octree.n_voxels)  # (V,)
+        if self.cfg.mesh_observed_only:
+            return self.observed.snapshot(self.octree, strict=~initialised).contains
+        octree = self.octree
+
+        def in_initialised(points: np.ndarray) -> np.ndarray:
+            vid = locate(octree, torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))).numpy()
+            return (vid >= 0) & initialised[np.maximum(vid, 0)]
+
+        return in_initialised

@@ -190,6 +190,19 @@ class VoxelOctree:
         coords = torch.floor(points / self.voxel_size_m).long()
         return self.voxels.lookup_torch(encode(coords))
 
+    def locate_points(self, points: torch.Tensor) -> torch.Tensor:
+        """Voxel ids (N,) of points (N,3), also accepting points on the outer face of an allocated voxel (up to
+        rounding in either direction), -1 elsewhere."""
+        ids = self.lookup_points(points)
+        eps = 1e-4 * self.voxel_size_m
+        for code in range(27):
+            missing = ids < 0
+            if not bool(missing.any()):
+                break
+            shift = (torch.tensor([code // 9, code // 3 % 3, code % 3], device=points.device) - 1) * eps
+            ids[missing] = self.lookup_points(points[missing] + shift)
+        return ids
+
     def state_dict(self) -> dict[str, np.ndarray]:
         return {
             "voxel_keys": self.voxels.keys,

@@ -13,6 +13,7 @@ rays); rays whose weights sum below HIT_WEIGHT render empty (0) in both.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +23,14 @@ from h2viz.config import MappingConfig
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.rays import pixel_rays
-from h2viz.mapping.rendering import composite, live_samples, render_weights, segment_sum
+from h2viz.mapping.rendering import (
+    composite,
+    first_hit,
+    live_samples,
+    render_weights,
+    segment_sum,
+    surface_crossings,
+)
 from h2viz.mapping.sampling import Samples, sample_rays
 from h2viz.mapping.surface import MLP_ROWS, SearchParams, prior_samples, weighted_samples
 
@@ -41,6 +49,8 @@ class RenderParams:
     temperature: float
     band: float | None  # reference path: keep samples with |prior| < band (truncation units); None keeps all
     after_m: float = 0.1  # fast path: walk this far beyond the first prior crossing before trusting it
+    surface: bool = False  # rgb/depth/normal at the first observed zero crossing instead of volume-rendered
+    prior_band: float = 0.0  # surface renders: the prior's sign beyond this (truncation units), as meshing
 
     def search(self) -> SearchParams:
         return SearchParams(self.step_m, self.truncation_m, self.temperature, self.after_m)
@@ -54,21 +64,15 @@ class RenderParams:
             truncation_m=cfg.truncation_m,
             temperature=cfg.render_temperature,
             band=4.0 * cfg.voxel_size_m / cfg.truncation_m if cfg.priors else None,
+            surface=cfg.render_surface,
+            prior_band=cfg.mesh_prior_band if cfg.priors else 0.0,
         )
 
 
 def locate(octree: VoxelOctree, points: torch.Tensor) -> torch.Tensor:
     """Voxel ids (N,) of points (N,3), also accepting points on the outer face of an allocated voxel
     (up to rounding in either direction), -1 elsewhere."""
-    ids = octree.lookup_points(points)
-    eps = 1e-4 * octree.voxel_size_m
-    for code in range(27):
-        missing = ids < 0
-        if not bool(missing.any()):
-            break
-        shift = (torch.tensor([code // 9, code // 3 % 3, code % 3], device=points.device) - 1) * eps
-        ids[missing] = octree.lookup_points(points[missing] + shift)
-    return ids
+    return octree.locate_points(points)
 
 
 NORMAL_STEP_M = 1e-3
@@ -108,6 +112,55 @@ def sdf_gradient_fd(
     return torch.nn.functional.normalize(grad, dim=1)
 
 
+Support = Callable[[np.ndarray], np.ndarray]
+"""Which world points (N,3) lie where depth was observed, (N,) bool: a surface render draws only those."""
+
+
+def surface_depth(
+    field: HybridField,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    samples: Samples,
+    sdf: torch.Tensor,
+    params: RenderParams,
+    support: Support | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Depth (R,) at each ray's first zero crossing of the SDF that the mesher would also draw (the prior's sign
+    beyond `params.prior_band`, the crossing in observed space), 0 where there is none; hit (R,) bool and the
+    hit rays' surface points (R',3). A ray with no crossing whose weights still show a surface (one that ends on
+    the outer face of the allocated voxels, with no voxel behind it to cross into) takes the volume-rendered depth
+    there, under the same observed-space test."""
+    if params.prior_band > 0:
+        prior = field.prior_sdf(samples.points, samples.voxel)  # (S,)
+        sdf = torch.where((prior.abs() > params.prior_band) & (torch.sign(sdf) != torch.sign(prior)), prior, sdf)
+    hits = surface_crossings(samples, sdf, 1.5 * params.step_m)
+    R, dev = origins.shape[0], sdf.device
+    first, crossed = first_hit(hits, _drawable(hits.points, support), R)
+    depth = torch.zeros(R, device=dev)
+    points = torch.zeros(R, 3, device=dev)
+    depth[crossed] = hits.t[first[crossed]]
+    points[crossed] = hits.points[first[crossed]]
+    any_crossing = torch.zeros(R, dtype=torch.bool, device=dev)
+    any_crossing[hits.ray] = True
+    weights = render_weights(samples, sdf, params.truncation_m, params.temperature)  # (S,)
+    edge = ~any_crossing & (segment_sum(weights, samples.ray, R) > HIT_WEIGHT)  # (R,) a surface on the map's edge
+    if bool(edge.any()):
+        t_edge = composite(samples, weights, None).depth  # (R,)
+        ray_of = torch.nonzero(edge)[:, 0]
+        p = origins[ray_of] + dirs[ray_of] * t_edge[ray_of, None]  # (E,3)
+        ok = _drawable(p, support)
+        depth[ray_of[ok]], points[ray_of[ok]] = t_edge[ray_of[ok]], p[ok]
+        crossed[ray_of[ok]] = True
+    return depth, crossed, points[crossed]
+
+
+def _drawable(points: torch.Tensor, support: Support | None) -> torch.Tensor:
+    """(N,) bool: points (N,3) where a surface may be drawn (all when support is None)."""
+    if support is None or points.shape[0] == 0:
+        return torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
+    return torch.from_numpy(support(points.cpu().numpy())).to(points.device)
+
+
 def shade(
     field: HybridField,
     octree: VoxelOctree,
@@ -117,14 +170,23 @@ def shade(
     sdf: torch.Tensor,
     mode: str,
     params: RenderParams,
+    support: Support | None = None,
 ) -> torch.Tensor:
-    """Composite R rays from their samples and SDF (S,): (R,3) for rgb/normal, (R,) for depth/prior."""
-    weights = render_weights(samples, sdf, params.truncation_m, params.temperature)  # (S,)
-    hit = segment_sum(weights, samples.ray, samples.n_rays) > HIT_WEIGHT  # (R,)
-    if mode == "rgb":
-        live = live_samples(samples, weights)  # (S',)
-        return composite(samples, weights, field.color(samples.points[live]), live).rgb * hit[:, None]
-    depth = composite(samples, weights, None).depth * hit  # (R,)
+    """Shade R rays from their samples and SDF (S,): (R,3) for rgb/normal, (R,) for depth/prior. Surface renders
+    take each ray's first observed zero crossing (and its colour there), others composite the rendering weights."""
+    if params.surface and mode != "prior":
+        depth, hit, points = surface_depth(field, origins, dirs, samples, sdf, params, support)
+        if mode == "rgb":
+            rgb = torch.zeros(origins.shape[0], 3, device=origins.device)
+            rgb[hit] = field.color(points) if points.shape[0] else rgb[hit]
+            return rgb
+    else:
+        weights = render_weights(samples, sdf, params.truncation_m, params.temperature)  # (S,)
+        hit = segment_sum(weights, samples.ray, samples.n_rays) > HIT_WEIGHT  # (R,)
+        if mode == "rgb":
+            live = live_samples(samples, weights)  # (S',)
+            return composite(samples, weights, field.color(samples.points[live]), live).rgb * hit[:, None]
+        depth = composite(samples, weights, None).depth * hit  # (R,)
     if mode != "normal":
         return depth
     normals = torch.zeros(origins.shape[0], 3, device=origins.device)
@@ -147,13 +209,14 @@ def render_rays(
     mode: str,
     params: RenderParams,
     trusted: torch.Tensor | None,
+    support: Support | None = None,
 ) -> torch.Tensor:
     """Render R rays (origins, dirs (R,3)), evaluating the networks only where weight can be."""
     if mode == "prior":
         samples, sdf = prior_samples(octree, field, origins, dirs, params.t_far, params.search())
     else:
         samples, sdf = weighted_samples(field, octree, origins, dirs, params.t_far, trusted, params.search())
-    return shade(field, octree, origins, dirs, samples, sdf, mode, params)
+    return shade(field, octree, origins, dirs, samples, sdf, mode, params, support)
 
 
 @torch.no_grad()
@@ -165,6 +228,7 @@ def render_rays_reference(
     mode: str,
     params: RenderParams,
     trusted: torch.Tensor | None = None,
+    support: Support | None = None,
 ) -> torch.Tensor:
     """Render R rays from every sample of every allocated voxel up to t_far (band-filtered by the prior)."""
     t_far = torch.full((origins.shape[0],), params.t_far, device=origins.device)
@@ -174,7 +238,7 @@ def render_rays_reference(
         keep = prior.abs() < params.band
         samples, prior = samples.select(keep), prior[keep]
     sdf = prior if mode == "prior" else field.sdf(samples.points, samples.voxel)
-    return shade(field, octree, origins, dirs, samples, sdf, mode, params)
+    return shade(field, octree, origins, dirs, samples, sdf, mode, params, support)
 
 
 def render_image(
@@ -189,9 +253,11 @@ def render_image(
     trusted: torch.Tensor | None = None,
     chunk: int = CHUNK_RAYS,
     reference: bool = False,
+    support: Support | None = None,
 ) -> np.ndarray:
     """(H,W,3) float32 rgb in [0,1] / normals in [-1,1], or (H,W) float32 depth in metres (0 = nothing).
-    trusted (V,) bool: voxels whose 8 corner priors are all set (None: priors disabled, search the SDF)."""
+    trusted (V,) bool: voxels whose 8 corner priors are all set (None: priors disabled, search the SDF);
+    support: where surface renders may draw (None: everywhere)."""
     if mode not in MODES:
         raise ValueError(f"render mode '{mode}' is not one of {', '.join(MODES)}")
     dev = field.priors.device
@@ -201,7 +267,7 @@ def render_image(
         return np.zeros((height, width, *channels), dtype=np.float32)
     fn = render_rays_reference if reference else render_rays
     parts = [
-        fn(field, octree, origins[i : i + chunk], dirs[i : i + chunk], mode, params, trusted)
+        fn(field, octree, origins[i : i + chunk], dirs[i : i + chunk], mode, params, trusted, support)
         for i in range(0, origins.shape[0], chunk)
     ]
     return torch.cat(parts).float().cpu().numpy().reshape(height, width, *channels)

@@ -76,3 +76,35 @@ def live_samples(samples: Samples, weights: torch.Tensor) -> torch.Tensor:
     w = weights.detach()
     total = segment_sum(w, samples.ray, samples.n_rays)  # (R,)
     return torch.nonzero(w >= LIVE_SHARE * total[samples.ray])[:, 0]
+
+
+@dataclass
+class SurfaceHits:
+    """Where rays cross the zero level set of the SDF, from outside (positive) to inside (negative)."""
+
+    ray: torch.Tensor  # (C,) ray of each crossing, non-decreasing
+    t: torch.Tensor  # (C,) depth of the crossing along the ray (linear interpolation between two samples)
+    points: torch.Tensor  # (C,3) world position of the crossing
+
+
+def surface_crossings(samples: Samples, sdf: torch.Tensor, max_gap_m: float) -> SurfaceHits:
+    """Every sign change + -> - of the SDF (S,) between two consecutive samples of a ray at most `max_gap_m` apart
+    in t, in ray-major, front-to-back order. Samples further apart (a gap in the allocated voxels, a sample the
+    render search skipped) bound no crossing: nothing was evaluated between them."""
+    s0, s1 = sdf[:-1], sdf[1:]
+    pair = (samples.ray[:-1] == samples.ray[1:]) & (samples.t[1:] - samples.t[:-1] <= max_gap_m)
+    j = torch.nonzero(pair & (s0 >= 0) & (s1 < 0))[:, 0]  # (C,) first sample of each crossing pair
+    frac = (s0[j] / (s0[j] - s1[j])).clamp(0.0, 1.0)[:, None]  # (C,1)
+    t = samples.t[j] + frac[:, 0] * (samples.t[j + 1] - samples.t[j])
+    points = samples.points[j] + frac * (samples.points[j + 1] - samples.points[j])
+    return SurfaceHits(samples.ray[j], t, points)
+
+
+def first_hit(hits: SurfaceHits, keep: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first crossing per ray among those with keep (C,) True: (index into hits (R,), hit (R,) bool)."""
+    order = torch.arange(hits.t.numel(), device=hits.t.device)
+    big = torch.full_like(order, hits.t.numel())
+    first = torch.full((n_rays,), hits.t.numel(), dtype=order.dtype, device=order.device)
+    first = first.scatter_reduce(0, hits.ray, torch.where(keep, order, big), reduce="amin")
+    hit = first < hits.t.numel()
+    return torch.where(hit, first, torch.zeros_like(first)), hit

@@ -82,7 +82,7 @@ def sample_rays(
 class BandLayout:
     """Where a training ray's candidate samples lie, relative to its measured depth d: `n_free` strata from
     the camera to d - band_m; strata of `front_step_m` (rounded to tile the span) from d - band_m to d - tr,
-    where only the free-space loss acts; every `step_m` from d - tr to d + tr, where the SDF loss and the
+    where only the free-space loss acts; every `step_m` from d - tr to d + `behind_m`, where the SDF loss and the
     render weights live."""
 
     band_m: float
@@ -90,6 +90,11 @@ class BandLayout:
     step_m: float
     front_step_m: float
     n_free: int
+    behind_m: float | None = None  # None = tr
+
+    @property
+    def behind(self) -> float:
+        return self.truncation_m if self.behind_m is None else self.behind_m
 
     @property
     def n_front(self) -> int:
@@ -97,7 +102,7 @@ class BandLayout:
 
     @property
     def n_truncation(self) -> int:
-        return max(1, int(round(2.0 * self.truncation_m / self.step_m)))
+        return max(1, int(round((self.truncation_m + self.behind) / self.step_m)))
 
     @property
     def n_candidates(self) -> int:

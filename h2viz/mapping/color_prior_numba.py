@@ -1,0 +1,97 @@
+"""Numba kernels of the colour prior (`h2viz.mapping.color_prior.ColorPrior`'s torch code is their reference):
+splatting a frame's colours onto the voxels' lattices, and blending them at query points, each voxel found in
+the octree's hash table."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from h2viz.mapping.dda import lookup
+from h2viz.mapping.jit import njit
+
+
+@njit(inline=True)
+def _lattice(
+    p: np.ndarray, v: int, origin: np.ndarray, inv_cell: float, sub: int, idx: np.ndarray, w: np.ndarray
+) -> None:
+    """idx (8,) flat indices into the (V*(sub+1)^3, 4) sums and w (8,) trilinear weights of point p in voxel v."""
+    n = sub + 1
+    base = np.empty(3, np.int64)
+    frac = np.empty(3, np.float32)
+    for a in range(3):
+        x = min(max((p[a] - origin[v, a]) * inv_cell, 0.0), float(sub))
+        b = min(int(np.floor(x)), sub - 1)
+        base[a], frac[a] = b, x - b
+    k = 0
+    for dx in range(2):
+        for dy in range(2):
+            for dz in range(2):
+                wx = frac[0] if dx else 1.0 - frac[0]
+                wy = frac[1] if dy else 1.0 - frac[1]
+                wz = frac[2] if dz else 1.0 - frac[2]
+                idx[k] = v * n * n * n + ((base[0] + dx) * n + base[1] + dy) * n + base[2] + dz
+                w[k] = wx * wy * wz
+                k += 1
+
+
+@njit(inline=True)
+def _voxel(p: np.ndarray, vs: float, keys: np.ndarray, ids: np.ndarray, tolerant: bool) -> int:
+    """Voxel id of point p (-1 outside the map); `tolerant` also accepts points on an allocated voxel's outer face."""
+    v = lookup(keys, ids, int(np.floor(p[0] / vs)), int(np.floor(p[1] / vs)), int(np.floor(p[2] / vs)))
+    if v >= 0 or not tolerant:
+        return v
+    eps = 1e-4 * vs
+    for code in range(27):
+        sx, sy, sz = (code // 9 - 1) * eps, (code // 3 % 3 - 1) * eps, (code % 3 - 1) * eps
+        v = lookup(keys, ids, int(np.floor((p[0] + sx) / vs)), int(np.floor((p[1] + sy) / vs)),
+                   int(np.floor((p[2] + sz) / vs)))  # fmt: skip
+        if v >= 0:
+            return v
+    return -1
+
+
+@njit
+def splat(
+    points: np.ndarray, rgb: np.ndarray, keys: np.ndarray, ids: np.ndarray, origin: np.ndarray, vs: float, sub: int,
+    sums: np.ndarray,
+) -> None:  # fmt: skip
+    """sums (V*(sub+1)^3, 4) += colours rgb (N,3) in [0,1] at points (N,3), trilinear weights; points outside the
+    map are skipped. Serial: neighbouring pixels write the same lattice points."""
+    idx, w = np.empty(8, np.int64), np.empty(8, np.float32)
+    inv_cell = sub / vs
+    last = np.array([0, 0, 0, -2], np.int64)  # the last cell looked up and its voxel: neighbouring pixels share it
+    for i in range(points.shape[0]):
+        cx, cy, cz = int(np.floor(points[i, 0] / vs)), int(np.floor(points[i, 1] / vs)), int(np.floor(points[i, 2] / vs))
+        if last[3] == -2 or cx != last[0] or cy != last[1] or cz != last[2]:
+            last[0], last[1], last[2], last[3] = cx, cy, cz, lookup(keys, ids, cx, cy, cz)
+        v = last[3]
+        if v < 0:
+            continue
+        _lattice(points[i], v, origin, inv_cell, sub, idx, w)
+        for k in range(8):
+            for c in range(3):
+                sums[idx[k], c] += w[k] * rgb[i, c]
+            sums[idx[k], 3] += w[k]
+
+
+@njit(parallel=True)
+def blend(
+    points: np.ndarray, keys: np.ndarray, ids: np.ndarray, origin: np.ndarray, vs: float, sub: int,
+    sums: np.ndarray, empty: float, out_rgb: np.ndarray, out_w: np.ndarray,
+) -> None:  # fmt: skip
+    """out_rgb (N,3) <- the prior colour at points (N,3) (`empty` where nothing was observed), out_w (N,) <- its
+    blended weight."""
+    inv_cell = sub / vs
+    for i in numba.prange(points.shape[0]):
+        idx, w = np.empty(8, np.int64), np.empty(8, np.float32)
+        acc = np.zeros(4, np.float32)
+        v = _voxel(points[i], vs, keys, ids, True)
+        if v >= 0:
+            _lattice(points[i], v, origin, inv_cell, sub, idx, w)
+            for k in range(8):
+                for c in range(4):
+                    acc[c] += w[k] * sums[idx[k], c]
+        for c in range(3):
+            out_rgb[i, c] = acc[c] / acc[3] if acc[3] > 1e-6 else empty
+        out_w[i] = acc[3]
