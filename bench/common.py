@@ -3,9 +3,14 @@ sequences in ../shared/data), their configurations, and markdown tables."""
 
 from __future__ import annotations
 
+import datetime
 import math
+import os
+import platform
 import shlex
+import subprocess
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -79,13 +84,17 @@ def pick(names: str, known: dict[str, object], what: str) -> list[str]:
     return picked
 
 
-def dataset_config(ds: Dataset, frames: int | None, overrides: list[str]) -> Config:
-    """Configuration as `h2viz map --data <dataset>` resolves it: defaults <- configs/<format>.yaml <-
-    the frame cap <- `overrides` (section.key=value)."""
+def dataset_config(
+    ds: Dataset, frames: int | None, overrides: list[str], config_files: Sequence[str | Path] = ()
+) -> Config:
+    """Configuration as `h2viz map --data <dataset> --config FILE...` resolves it: defaults <- configs/<format>.yaml
+    <- each of `config_files` <- the frame cap <- `overrides` (section.key=value)."""
     cfg = load_config()
     per_source = source_config_file(ds.fmt)
     if per_source is not None:
         apply_file(cfg, per_source)
+    for path in config_files:
+        apply_file(cfg, path)
     path = ds.path()
     cfg.source.path = str(path) if path is not None else ""
     cfg.source.format = ds.fmt
@@ -112,3 +121,38 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> str:
 def command_line(script: str) -> str:
     """The command that reproduces this run, from the project root."""
     return " ".join([".venv/bin/python", script, *map(shlex.quote, sys.argv[1:])])
+
+
+def machine() -> str:
+    """The CPU model and core count, e.g. "AMD EPYC 7B13, 2 cores"."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model}, {os.cpu_count()} cores"
+
+
+def commit() -> str:
+    """The checkout's commit (short), with "+changes" when the work tree differs from it; "unknown" outside git."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+                               capture_output=True, text=True)  # fmt: skip
+    except OSError:
+        return "unknown"
+    if head.returncode != 0:
+        return "unknown"
+    return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
+
+
+def write_doc(path: str | Path, title: str, body: str) -> Path:
+    """Write a measurement page: a title, the stamp (date, commit, CPU) and the benchmark's report."""
+    stamp = f"Measured {datetime.date.today().isoformat()} at commit {commit()} on {machine()}."
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"# {title}\n\n{stamp}\n\n{body}\n")
+    return path

@@ -34,10 +34,20 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 import trimesh
+import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import DATASETS, Dataset, command_line, dataset_config, fmt, markdown_table, pick  # noqa: E402
+from bench.common import (  # noqa: E402
+    DATASETS,
+    Dataset,
+    command_line,
+    dataset_config,
+    fmt,
+    markdown_table,
+    pick,
+    write_doc,
+)
 from bench.tsdf_baseline import TsdfConfig, TsdfFusion  # noqa: E402
 from h2viz.config import Config, apply_overrides, load_config  # noqa: E402
 from h2viz.errors import H2vizError  # noqa: E402
@@ -273,10 +283,26 @@ class Variant:
     overrides: tuple[str, ...]
 
 
+def file_overrides(path: str) -> tuple[str, ...]:
+    """The mapping section of a config file (e.g. configs/paper.yaml) as key=value overrides."""
+    try:
+        data = yaml.safe_load(Path(path).read_text()) or {}
+    except (OSError, yaml.YAMLError) as e:
+        raise SystemExit(f"--variant: cannot read {path} ({e}); pass a YAML config file") from e
+    outside = sorted(set(data) - {"mapping"})
+    if outside:
+        raise SystemExit(f"--variant: {path} sets {', '.join(outside)}; a variant may only change mapping.*")
+    dump = lambda v: yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("...").strip()  # noqa: E731
+    return tuple(f"mapping.{k}={dump(v)}" for k, v in data["mapping"].items())
+
+
 def parse_variant(text: str) -> Variant:
-    """NAME=key=value,key=value -> Variant; SystemExit naming what is wrong."""
+    """NAME=key=value,key=value or NAME=@config.yaml -> Variant; SystemExit naming what is wrong."""
     name, _, rest = text.partition("=")
-    overrides = tuple(item.strip() for item in rest.split(",") if item.strip())
+    if rest.startswith("@"):
+        overrides = file_overrides(rest[1:])
+    else:
+        overrides = tuple(item.strip() for item in rest.split(",") if item.strip())
     if not name.strip() or not overrides:
         raise SystemExit(f"--variant {text!r}: write NAME=key=value[,key=value...], e.g. l2=mapping.rgb_loss=l2")
     if name.strip() in METHODS or name.strip().endswith("-mesh"):
@@ -528,7 +554,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         action="append",
         default=[],
         metavar="NAME=KEY=VALUE[,KEY=VALUE]",
-        help="one more h2viz row with these mapping overrides (repeatable), e.g. l2=mapping.rgb_loss=l2",
+        help="one more h2viz row with these mapping overrides (repeatable), e.g. l2=mapping.rgb_loss=l2, or those "
+        "of a config file's mapping section: paper=@configs/paper.yaml",
     )
     p.add_argument("--variant-mesh", action="store_true", help="also ray cast each variant's mesh (NAME-mesh)")
     p.add_argument("--frames", type=int, default=None, help="at most N frames per sequence, before the split")
@@ -537,6 +564,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--downscale", type=int, default=None, help="render at 1/N (default: eval.render_downscale)")
     p.add_argument("--json", default=None, help="also write every row, with its per-view numbers, to this file")
+    p.add_argument("--doc", default=None, help="also write the table, with commit and CPU, to this page")
     p.add_argument("--images", default=None, help="write mosaics of a few held-out views per sequence to this folder")
     p.add_argument("--image-views", type=int, default=3, help="held-out views per sequence with a mosaic (default 3)")
     p.add_argument("--tsdf-voxel-m", type=float, default=0.01, help="TSDF voxel size (default 1 cm)")
@@ -564,7 +592,10 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         rows += run_sequence(DATASETS[name], methods, variants, args)
         _log(f"    done in {time.perf_counter() - start:.0f} s")
-    print(report(rows, args.k))
+    table_md = report(rows, args.k)
+    print(table_md)
+    if args.doc:
+        write_doc(args.doc, "Held-out views", table_md)
     if args.json:
         table = [{**asdict(r), "median_frame_s": r.median_frame_s()} for r in rows]
         meta = {"command": command_line("bench/heldout.py"), "k": args.k, "downscale": args.downscale}

@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.common import DATASETS, Dataset, command_line, dataset_config, fmt, markdown_table, pick  # noqa: E402
 from bench.heldout import frame_view, heldout_split, is_heldout, own_scores  # noqa: E402
 from bench.tsdf_baseline import TsdfConfig, TsdfFusion, import_open3d  # noqa: E402
-from h2viz.config import Config, apply_overrides, dump_config, load_config  # noqa: E402
+from h2viz.config import Config, apply_file, apply_overrides, dump_config, load_config  # noqa: E402
 from h2viz.errors import H2vizError  # noqa: E402
 from h2viz.eval.mesh_render import MeshRenderer  # noqa: E402
 from h2viz.eval.report import Renderer, load_mesh, write_metrics  # noqa: E402
@@ -171,7 +171,7 @@ class Row:
 
 
 def _config(ds: Dataset, method: str, args: argparse.Namespace) -> Config:
-    cfg = dataset_config(ds, args.frames, [*args.set, *METHODS[method]])
+    cfg = dataset_config(ds, args.frames, [*args.set, *METHODS[method]], args.config)
     cfg.out_dir = str(Path(args.out) / ds.name / method)
     return cfg
 
@@ -277,6 +277,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         metavar="KEY=VALUE",
         help="config override for every run (mapping.* only affects h2viz)",
     )
+    p.add_argument(
+        "--config",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="config file for every run, after the per-format one (e.g. configs/paper.yaml for the paper's settings)",
+    )
     p.add_argument("--out", default=None, help="keep each run's mesh, metrics and config in OUT/<dataset>/<method>")
     p.add_argument("--json", default=None, help="also write every row (all metrics, per-frame times) to this file")
     p.add_argument("--tsdf-voxel-m", type=float, default=0.01, help="TSDF voxel size (default 1 cm)")
@@ -296,9 +303,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        apply_overrides(load_config(), args.set)  # a mistyped --set fails here, not in every row
+        cfg = load_config()
+        for path in args.config:
+            apply_file(cfg, path)
+        apply_overrides(cfg, args.set)  # a mistyped --set or config key fails here, not in every row
     except H2vizError as e:
-        raise SystemExit(f"--set: {e}") from e
+        raise SystemExit(f"--config / --set: {e}") from e
     with tempfile.TemporaryDirectory(prefix="h2viz-quality-") as tmp:
         args.out = args.out or tmp
         rows = run_all(args)

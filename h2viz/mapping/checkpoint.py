@@ -36,9 +36,7 @@ def _keyframe_from_record(rec: dict[str, Any], device: torch.device) -> FrameRay
     rgb = np.zeros((h * w, 3), np.uint8)
     depth[rec["valid"].numpy()] = rec["depth"].numpy()
     rgb[rec["valid"].numpy()] = rec["rgb"].numpy()
-    frame = RgbdFrame(
-        rec["index"], 0.0, rgb.reshape(h, w, 3), depth.reshape(h, w), rec["K"], rec["T_world_camera"]
-    )
+    frame = RgbdFrame(rec["index"], 0.0, rgb.reshape(h, w, 3), depth.reshape(h, w), rec["K"], rec["T_world_camera"])
     return FrameRays(frame, device)
 
 
@@ -84,9 +82,7 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
     except Exception as e:  # noqa: BLE001 - any unpickling failure means the file is unusable
         raise CheckpointError(f"{path} is not a readable h2viz checkpoint ({e})") from e
     if state.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(
-            f"{path} has checkpoint format {state.get('format_version')}, expected {FORMAT_VERSION}"
-        )
+        raise CheckpointError(f"{path} has checkpoint format {state.get('format_version')}, expected {FORMAT_VERSION}")
     saved = MappingConfig(**state["config"])
     if cfg is not None:  # runtime-only settings may change on resume; the map's geometry may not
         saved = dataclasses.replace(
@@ -113,7 +109,7 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
     mapper.field.load_state_dict(state["field"])
     mapper.field.priors = state["priors"].to(mapper.device).requires_grad_(saved.priors)
     if mapper.field.color_prior is not None and state.get("color_prior") is not None:
-        mapper.field.color_prior.sums = state["color_prior"].to(mapper.device)
+        mapper.field.color_prior.load(state["color_prior"])
     mapper.optim.load_state_dict(state["optim"])
     mapper.net_optim.load_state_dict(state["net_optim"])
     mapper.keyframes.load_state_dict(state["keyframes"])

@@ -67,7 +67,7 @@ class ColorPrior:
         """Prior colour (N,3) and weight (N,) at world points (N,3) (EMPTY and 0 outside the map)."""
         fast = self._kernels(points, octree)
         if fast is None:
-            return self.query(points, octree.locate_points(points), voxel_origin)
+            return self.query_reference(octree, voxel_origin, points)
         kernels, table = fast
         p = np.ascontiguousarray(points.detach().numpy(), dtype=np.float32)
         rgb, weight = np.empty((p.shape[0], 3), np.float32), np.empty(p.shape[0], np.float32)
@@ -75,6 +75,12 @@ class ColorPrior:
         sums = self.sums.view(-1, 4).numpy()
         kernels.blend(p, *table, origin, self.voxel_size_m, SUB, sums, EMPTY, rgb, weight)  # type: ignore[attr-defined]
         return torch.from_numpy(rgb), torch.from_numpy(weight)
+
+    def load(self, sums: torch.Tensor) -> None:
+        """Take saved lattices (V, (SUB+1)^3, 4) (a checkpoint's)."""
+        if sums.shape[1:] != (self.n**3, 4):
+            raise ValueError(f"colour prior lattices of shape {tuple(sums.shape)}; expected (V, {self.n**3}, 4)")
+        self.sums, self._storage = sums.to(self.sums.device, torch.float32), None
 
     def to(self, device: torch.device) -> None:
         """Keep the lattices on `device` (the field's)."""
@@ -135,6 +141,35 @@ class ColorPrior:
         rgb_in = torch.where(seen[:, None], blended[:, :3] / blended[:, 3:].clamp(min=1e-6), EMPTY)
         rgb[inside], weight[inside] = rgb_in, blended[:, 3]
         return rgb, weight
+
+    def query_reference(
+        self, octree: VoxelOctree, voxel_origin: torch.Tensor, points: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`colors` in torch: the point's own voxel and, within one lattice cell of a face, the neighbours across
+        it (each blending its lattice at the point moved onto its box), their weighted sums added."""
+        vs = self.voxel_size_m
+        cell = vs / SUB
+        own = torch.floor(points / vs)  # (N,3) the point's own voxel cell
+        inside = points - own * vs  # (N,3) metres within it
+        acc = torch.zeros(points.shape[0], 4, device=points.device)
+        for code in range(27):
+            off = torch.tensor([code // 9 - 1, code // 3 % 3 - 1, code % 3 - 1], device=points.device)
+            near = torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
+            for a in range(3):
+                if off[a] == -1:
+                    near &= inside[:, a] < cell
+                elif off[a] == 1:
+                    near &= inside[:, a] > vs - cell
+            voxel = torch.full((points.shape[0],), -1, dtype=torch.long, device=points.device)
+            if bool(near.any()):
+                voxel[near] = octree.lookup_points((own[near] + off + 0.5) * vs)
+            keep = voxel >= 0
+            if bool(keep.any()):
+                idx, w = self._lattice(points[keep], voxel[keep], voxel_origin)  # (N',8)
+                acc[keep] += (self.sums.view(-1, 4)[idx] * w[..., None]).sum(dim=1)
+        seen = acc[:, 3] > 1e-6
+        rgb = torch.where(seen[:, None], acc[:, :3] / acc[:, 3:].clamp(min=1e-6), EMPTY)
+        return rgb, acc[:, 3]
 
     def logit(self, octree: VoxelOctree, voxel_origin: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
         """logit of the prior colour (N,3) at world points (N,3): the colour field's output before its residual."""

@@ -62,7 +62,8 @@ def splat(
     inv_cell = sub / vs
     last = np.array([0, 0, 0, -2], np.int64)  # the last cell looked up and its voxel: neighbouring pixels share it
     for i in range(points.shape[0]):
-        cx, cy, cz = int(np.floor(points[i, 0] / vs)), int(np.floor(points[i, 1] / vs)), int(np.floor(points[i, 2] / vs))
+        cx = int(np.floor(points[i, 0] / vs))
+        cy, cz = int(np.floor(points[i, 1] / vs)), int(np.floor(points[i, 2] / vs))
         if last[3] == -2 or cx != last[0] or cy != last[1] or cz != last[2]:
             last[0], last[1], last[2], last[3] = cx, cy, cz, lookup(keys, ids, cx, cy, cz)
         v = last[3]
@@ -81,14 +82,33 @@ def blend(
     sums: np.ndarray, empty: float, out_rgb: np.ndarray, out_w: np.ndarray,
 ) -> None:  # fmt: skip
     """out_rgb (N,3) <- the prior colour at points (N,3) (`empty` where nothing was observed), out_w (N,) <- its
-    blended weight."""
+    blended weight. Within one lattice cell of a voxel face, the neighbour across it adds its own lattice's blend
+    at the point moved onto the face: the splats of a surface on a face land on one side only."""
     inv_cell = sub / vs
+    cell = vs / sub
     for i in numba.prange(points.shape[0]):
         idx, w = np.empty(8, np.int64), np.empty(8, np.float32)
         acc = np.zeros(4, np.float32)
-        v = _voxel(points[i], vs, keys, ids, True)
-        if v >= 0:
-            _lattice(points[i], v, origin, inv_cell, sub, idx, w)
+        p = points[i]
+        q = np.empty(3, np.float32)
+        c0 = np.empty(3, np.int64)
+        for a in range(3):
+            c0[a] = int(np.floor(p[a] / vs))
+        for code in range(27):
+            off = (code // 9 - 1, code // 3 % 3 - 1, code % 3 - 1)
+            near = True
+            for a in range(3):
+                lo = p[a] - c0[a] * vs  # position inside the point's own voxel, metres
+                if (off[a] == -1 and lo >= cell) or (off[a] == 1 and lo <= vs - cell):
+                    near = False
+            if not near:
+                continue
+            v = lookup(keys, ids, c0[0] + off[0], c0[1] + off[1], c0[2] + off[2])
+            if v < 0:
+                continue
+            for a in range(3):
+                q[a] = p[a]
+            _lattice(q, v, origin, inv_cell, sub, idx, w)  # clamps the point onto the voxel's box
             for k in range(8):
                 for c in range(4):
                     acc[c] += w[k] * sums[idx[k], c]

@@ -141,6 +141,26 @@ def test_variants_are_named_mapping_overrides() -> None:
     assert names == ["tsdf", "h2viz-mesh", "l2", "l2-mesh"]
 
 
+def test_a_variant_takes_the_mapping_section_of_a_config_file(tmp_path: Path) -> None:
+    v = heldout.parse_variant(f"paper=@{bench.common.ROOT / 'configs' / 'paper.yaml'}")
+    assert "mapping.color_prior=false" in v.overrides and "mapping.free_samples=-1" in v.overrides
+    cfg = bench.common.apply_overrides(bench.common.load_config(), list(v.overrides))
+    assert cfg.mapping.render_surface is False and cfg.mapping.rgb_loss == "l1"
+    other = tmp_path / "other.yaml"
+    other.write_text("source:\n  downscale: 2\n")
+    with pytest.raises(SystemExit, match="only change mapping"):
+        heldout.parse_variant(f"x=@{other}")
+    with pytest.raises(SystemExit, match="cannot read"):
+        heldout.parse_variant(f"x=@{tmp_path / 'missing.yaml'}")
+
+
+def test_a_measurement_page_is_stamped_with_commit_and_cpu(tmp_path: Path) -> None:
+    page = bench.common.write_doc(tmp_path / "docs" / "x.md", "Held-out views", "| a |\n|---|")
+    text = page.read_text()
+    assert text.startswith("# Held-out views\n") and "at commit " in text and " cores." in text
+    assert text.rstrip().endswith("|---|")
+
+
 # ---------------------------------------------------------------------------------------- end to end
 
 TINY = [

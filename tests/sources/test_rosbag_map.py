@@ -32,7 +32,7 @@ def test_bag_and_folder_give_the_same_mesh(tmp_path: Path, kind: str) -> None:
     a = trimesh.load(tmp_path / "folder" / "mesh.ply", process=False)
     b = trimesh.load(tmp_path / "bag" / "mesh.ply", process=False)
     assert len(a.faces) > 500
-    assert abs(len(a.faces) - len(b.faces)) <= 0.02 * len(a.faces)
+    assert abs(len(a.faces) - len(b.faces)) <= 0.03 * len(a.faces)  # edge faces come and go with the chaos below
     d_ab, _ = cKDTree(b.vertices).query(a.vertices)
     d_ba, _ = cKDTree(a.vertices).query(b.vertices)
     # Mapping the same input twice gives identical meshes; poses that went through the bag's quaternions
