@@ -14,16 +14,23 @@ RGB_LOSSES: tuple[str, ...] = ("l1", "l2")
 """mapping.rgb_loss choices: absolute or squared colour error."""
 
 
-COLOR_SUPERVISION: tuple[str, ...] = ("surface", "volume")
-"""mapping.color_supervision choices: colour at each ray's measured surface point, or volume-rendered colour."""
+COLOR_SUPERVISION: tuple[str, ...] = ("none", "surface", "volume")
+"""mapping.color_supervision choices: no colour training (the colour priors alone), colour at each ray's measured
+surface point, or volume-rendered colour."""
 
 
-def check_rgb_loss(name: str, supervision: str = "volume") -> None:
-    """Raise ConfigError for an unknown mapping.rgb_loss or mapping.color_supervision."""
+def check_rgb_loss(name: str, supervision: str = "volume", color_prior: bool = False) -> None:
+    """Raise ConfigError for an unknown mapping.rgb_loss or mapping.color_supervision, or for a map with neither
+    colour priors nor colour training."""
     if name not in RGB_LOSSES:
         raise ConfigError(f"mapping.rgb_loss: unknown {name!r}; use one of {RGB_LOSSES}")
     if supervision not in COLOR_SUPERVISION:
         raise ConfigError(f"mapping.color_supervision: unknown {supervision!r}; use one of {COLOR_SUPERVISION}")
+    if supervision == "none" and not color_prior:
+        raise ConfigError(
+            "mapping.color_supervision: none leaves colour to the colour priors, but mapping.color_prior is false; "
+            "turn the priors on or pick surface / volume"
+        )
 
 
 def color_error(pred: torch.Tensor, target: torch.Tensor, squared: bool) -> torch.Tensor:

@@ -50,10 +50,11 @@ class Mapper:
     """Octree SDF priors + hash-grid residual field, optimised frame by frame with coverage keyframes."""
 
     def __init__(self, cfg: MappingConfig) -> None:
-        check_rgb_loss(cfg.rgb_loss, cfg.color_supervision)
+        check_rgb_loss(cfg.rgb_loss, cfg.color_supervision, cfg.color_prior)
         self.cfg = cfg
-        self.surface_color = cfg.color_supervision == "surface"
-        self.geometry_cfg = replace(cfg, w_rgb=0.0) if self.surface_color else cfg  # the geometry batch's losses
+        self.surface_color = cfg.color_supervision == "surface"  # colour learned on a batch of its own
+        self.volume_color = cfg.color_supervision == "volume"  # colour learned in the geometry batch
+        self.geometry_cfg = cfg if self.volume_color else replace(cfg, w_rgb=0.0)  # the geometry batch's losses
         self.device = pick_device(cfg.device)
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)
@@ -242,7 +243,7 @@ class Mapper:
         colour has a batch of its own): the fused kernels on the CPU (h2viz.mapping.loss_numba), else the torch
         functions they reproduce."""
         cfg = self.geometry_cfg
-        color = self._no_color if self.surface_color else self.field.color
+        color = self.field.color if self.volume_color else self._no_color
         fused = kernel_module("loss_numba") if cfg.kernels == "auto" and self.device.type == "cpu" else None
         if fused is not None:
             return fused.mapping_losses(samples, sdf, color, batch.rgb, batch.depth, cfg)
