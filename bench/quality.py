@@ -31,7 +31,16 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import DATASETS, Dataset, command_line, dataset_config, fmt, markdown_table, pick  # noqa: E402
+from bench.common import (  # noqa: E402
+    DATASETS,
+    Dataset,
+    command_line,
+    dataset_config,
+    fmt,
+    markdown_table,
+    pick,
+    write_doc,
+)
 from bench.heldout import frame_view, heldout_split, is_heldout, own_scores  # noqa: E402
 from bench.tsdf_baseline import TsdfConfig, TsdfFusion, import_open3d  # noqa: E402
 from h2viz.config import Config, apply_file, apply_overrides, dump_config, load_config  # noqa: E402
@@ -285,6 +294,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="config file for every run, after the per-format one (e.g. configs/paper.yaml for the paper's settings)",
     )
     p.add_argument("--out", default=None, help="keep each run's mesh, metrics and config in OUT/<dataset>/<method>")
+    p.add_argument("--doc", default=None, help="also write the table, with commit and CPU, to this page")
     p.add_argument("--json", default=None, help="also write every row (all metrics, per-frame times) to this file")
     p.add_argument("--tsdf-voxel-m", type=float, default=0.01, help="TSDF voxel size (default 1 cm)")
     p.add_argument("--tsdf-trunc-voxels", type=float, default=5.0, help="TSDF truncation in voxels (default 5)")
@@ -312,7 +322,10 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="h2viz-quality-") as tmp:
         args.out = args.out or tmp
         rows = run_all(args)
-    print(report(rows))
+    text = report(rows)
+    print(text)
+    if args.doc:
+        write_doc(args.doc, "Quality: h2viz, its ablations and TSDF fusion", text)
     if args.json:
         table = [{**asdict(r), "median_frame_s": r.median_frame_s()} for r in rows]
         write_metrics({"command": command_line("bench/quality.py"), "rows": table}, args.json)

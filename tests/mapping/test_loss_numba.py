@@ -10,8 +10,10 @@ import torch
 from h2viz.config import MappingConfig
 from h2viz.errors import ConfigError
 from h2viz.mapping import losses
+from h2viz.mapping.mapper import Mapper
 from h2viz.mapping.rendering import composite, live_samples, render_weights
 from h2viz.mapping.sampling import Samples
+from tests.mapping.analytic import Scene, orbit
 
 fused = pytest.importorskip("h2viz.mapping.loss_numba")
 
@@ -94,3 +96,26 @@ def test_colour_term_is_the_mean_absolute_or_squared_error(rgb_loss: str, error:
 def test_an_unknown_colour_loss_is_refused_by_name() -> None:
     with pytest.raises(ConfigError, match="mapping.rgb_loss: unknown 'huber'"):
         losses.check_rgb_loss("huber")
+
+
+def test_colour_supervision_is_checked_by_name_and_needs_a_colour_source() -> None:
+    with pytest.raises(ConfigError, match="mapping.color_supervision: unknown 'pixels'"):
+        losses.check_rgb_loss("l2", "pixels")
+    with pytest.raises(ConfigError, match="color_prior is false"):
+        losses.check_rgb_loss("l2", "none", color_prior=False)
+    for supervision in ("none", "surface", "volume"):
+        losses.check_rgb_loss("l2", supervision, color_prior=True)
+
+
+@pytest.mark.parametrize("supervision", ["none", "surface", "volume"])
+def test_each_colour_supervision_trains_the_colour_branch_only_when_asked(supervision: str) -> None:
+    scene = Scene("plane")
+    cfg = MappingConfig(device="cpu", min_points_per_voxel=3, rays_per_iter=512, hash_log2_size=12, max_iters=2,
+                        color_rays_per_iter=512, color_supervision=supervision)  # fmt: skip
+    mapper = Mapper(cfg)
+    before = mapper.field.color_grid.tables.detach().clone()
+    for i, T in enumerate(orbit(scene, 2, 0.5, 1.0, np.zeros(3))):
+        stats = mapper.integrate(scene.frame(i, T))
+    moved = not torch.equal(before, mapper.field.color_grid.tables.detach())
+    assert moved == (supervision != "none")
+    assert (stats.losses["rgb"] > 0) == (supervision != "none")

@@ -201,7 +201,7 @@ def shift_residual(mapper: Mapper, tr_units: float) -> None:
 def test_mesh_jobs_use_the_configured_band_and_moved_surfaces_within_it_are_meshed() -> None:
     mapper, scene, _ = sphere_mapper(2, mesh_observed_only=False)  # 4 cm from the depth: not observed cells
     job = mapper.mesh_job()
-    assert job is not None and job.field.prior_band == mapper.cfg.mesh_prior_band == 1.5
+    assert job is not None and job.field.prior_band == mapper.cfg.mesh_prior_band == 3.0
     shift_residual(mapper, 0.8)  # 4 cm into the sphere
     mesh = mapper.mesh()
     inside = np.median(scene.sdf(np.asarray(mesh.vertices)))
