@@ -76,6 +76,13 @@ class ColorPrior:
         kernels.blend(p, *table, origin, self.voxel_size_m, SUB, sums, EMPTY, rgb, weight)  # type: ignore[attr-defined]
         return torch.from_numpy(rgb), torch.from_numpy(weight)
 
+    def shared(self) -> ColorPrior:
+        """A prior reading these lattices as they are now, without copying them (for a frozen field: the live map
+        keeps splatting into them, which only makes its colours newer; lattices added later are not seen)."""
+        view = ColorPrior(self.voxel_size_m, self.sums.device, self.fused)
+        view.sums = self.sums
+        return view
+
     def load(self, sums: torch.Tensor) -> None:
         """Take saved lattices (V, (SUB+1)^3, 4) (a checkpoint's)."""
         if sums.shape[1:] != (self.n**3, 4):
@@ -163,7 +170,7 @@ class ColorPrior:
             voxel = torch.full((points.shape[0],), -1, dtype=torch.long, device=points.device)
             if bool(near.any()):
                 voxel[near] = octree.lookup_points((own[near] + off + 0.5) * vs)
-            keep = voxel >= 0
+            keep = (voxel >= 0) & (voxel < min(voxel_origin.shape[0], self.sums.shape[0]))  # a frozen copy may lag
             if bool(keep.any()):
                 idx, w = self._lattice(points[keep], voxel[keep], voxel_origin)  # (N',8)
                 acc[keep] += (self.sums.view(-1, 4)[idx] * w[..., None]).sum(dim=1)

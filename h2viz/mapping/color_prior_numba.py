@@ -60,6 +60,7 @@ def splat(
     map are skipped. Serial: neighbouring pixels write the same lattice points."""
     idx, w = np.empty(8, np.int64), np.empty(8, np.float32)
     inv_cell = sub / vs
+    n_voxels = min(origin.shape[0], sums.shape[0] // ((sub + 1) ** 3))
     last = np.array([0, 0, 0, -2], np.int64)  # the last cell looked up and its voxel: neighbouring pixels share it
     for i in range(points.shape[0]):
         cx = int(np.floor(points[i, 0] / vs))
@@ -67,7 +68,7 @@ def splat(
         if last[3] == -2 or cx != last[0] or cy != last[1] or cz != last[2]:
             last[0], last[1], last[2], last[3] = cx, cy, cz, lookup(keys, ids, cx, cy, cz)
         v = last[3]
-        if v < 0:
+        if v < 0 or v >= n_voxels:
             continue
         _lattice(points[i], v, origin, inv_cell, sub, idx, w)
         for k in range(8):
@@ -86,6 +87,7 @@ def blend(
     at the point moved onto the face: the splats of a surface on a face land on one side only."""
     inv_cell = sub / vs
     cell = vs / sub
+    n_voxels = min(origin.shape[0], sums.shape[0] // ((sub + 1) ** 3))  # a frozen copy may lag the live octree
     for i in numba.prange(points.shape[0]):
         idx, w = np.empty(8, np.int64), np.empty(8, np.float32)
         acc = np.zeros(4, np.float32)
@@ -104,7 +106,7 @@ def blend(
             if not near:
                 continue
             v = lookup(keys, ids, c0[0] + off[0], c0[1] + off[1], c0[2] + off[2])
-            if v < 0:
+            if v < 0 or v >= n_voxels:
                 continue
             for a in range(3):
                 q[a] = p[a]

@@ -41,10 +41,17 @@ class FrozenField:
     """
 
     def __init__(self, field: HybridField, truncation_m: float, prior_band: float = 0.0) -> None:
-        with torch.no_grad():
-            frozen = copy.deepcopy(field)
-            frozen.requires_grad_(False)
-            frozen.priors = frozen.priors.detach()
+        prior, octree = field.color_prior, field.octree
+        field.color_prior, field.octree = None, None  # shared, not copied: the lattices take ~12 kB a voxel
+        try:
+            with torch.no_grad():
+                frozen = copy.deepcopy(field)
+                frozen.requires_grad_(False)
+                frozen.priors = frozen.priors.detach()
+        finally:
+            field.color_prior, field.octree = prior, octree
+        frozen.color_prior = None if prior is None else prior.shared()
+        frozen.octree = octree  # its lookups beyond the frozen voxels are ignored by the colour prior
         self.field = frozen
         self.truncation_m = float(truncation_m)
         self.prior_band = float(prior_band)  # tr units; 0 = surfaces wherever the residual puts them

@@ -68,7 +68,8 @@ def test_frozen_field_matches_the_live_one(geo_layers: int) -> None:
 
 
 def test_frozen_field_ignores_later_training() -> None:
-    mapper, scene, poses = sphere_mapper(2)
+    # colour from the network alone here; the colour priors are shared, not frozen (next test)
+    mapper, scene, poses = sphere_mapper(2, color_prior=False, color_supervision="surface")
     frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
     points, ids = probe_points(mapper, 5000)
     sdf, rgb = frozen.sdf_m(points, ids), frozen.color_u8(points)
@@ -78,6 +79,21 @@ def test_frozen_field_ignores_later_training() -> None:
     np.testing.assert_array_equal(frozen.sdf_m(points, ids), sdf)
     np.testing.assert_array_equal(frozen.color_u8(points), rgb)
     assert not np.allclose(mapper.sdf_m(points), sdf)
+
+
+def test_frozen_field_shares_the_colour_priors_instead_of_copying_them() -> None:
+    mapper, scene, poses = sphere_mapper(2)
+    live = mapper.field.color_prior
+    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
+    assert live is not None and frozen.field.color_prior is not None and mapper.field.color_prior is live
+    assert frozen.field.color_prior.sums.data_ptr() == live.sums.data_ptr()  # no copy of ~12 kB a voxel
+    points, ids = probe_points(mapper, 5000)
+    sdf = frozen.sdf_m(points, ids)
+    for i in range(2, 5):  # new voxels the frozen field does not know, and more colour splatted
+        mapper.integrate(scene.frame(i, poses[i]))
+    np.testing.assert_array_equal(frozen.sdf_m(points, ids), sdf)  # geometry stays frozen
+    far = np.concatenate([points, np.asarray(mapper.mesh().vertices)])  # also points in voxels added since
+    assert frozen.color_u8(far).shape == (len(far), 3)  # lookups beyond the frozen voxels are skipped
 
 
 def test_jobs_on_another_thread_then_a_full_refresh_equal_a_fresh_mesh() -> None:
