@@ -130,25 +130,6 @@ class ColorPrior:
         values = torch.cat([rgb[:, None, :] * w[..., None], w[..., None]], dim=2)  # (N,8,4)
         self.sums.view(-1, 4).index_add_(0, idx.reshape(-1), values.reshape(-1, 4))
 
-    @torch.no_grad()
-    def query(
-        self, points: torch.Tensor, voxel: torch.Tensor, voxel_origin: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Prior colour (N,3) in [0,1] (EMPTY where nothing was observed) and its weight (N,) at points (N,3) in
-        voxels (N,) (-1 = outside the map)."""
-        rgb = torch.full((points.shape[0], 3), EMPTY, device=points.device)
-        weight = torch.zeros(points.shape[0], device=points.device)
-        inside = voxel >= 0
-        if not bool(inside.any()):
-            return rgb, weight
-        idx, w = self._lattice(points[inside], voxel[inside], voxel_origin)  # (N',8)
-        s = self.sums.view(-1, 4)[idx]  # (N',8,4)
-        blended = (s * w[..., None]).sum(dim=1)  # (N',4)
-        seen = blended[:, 3] > 1e-6
-        rgb_in = torch.where(seen[:, None], blended[:, :3] / blended[:, 3:].clamp(min=1e-6), EMPTY)
-        rgb[inside], weight[inside] = rgb_in, blended[:, 3]
-        return rgb, weight
-
     def query_reference(
         self, octree: VoxelOctree, voxel_origin: torch.Tensor, points: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:

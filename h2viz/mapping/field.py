@@ -6,6 +6,9 @@ octree; the two hash grids and decoders are ordinary modules.
 
 from __future__ import annotations
 
+from typing import TypeVar
+
+import numpy as np
 import torch
 from torch import nn
 
@@ -27,6 +30,19 @@ def mlp(d_in: int, hidden: int, layers: int, d_out: int) -> nn.Sequential:
         d = hidden
     mods.append(nn.Linear(d, d_out))
     return nn.Sequential(*mods)
+
+
+Values = TypeVar("Values", np.ndarray, torch.Tensor)
+
+
+def keep_prior_sign(sdf: Values, prior: Values, band: float) -> Values:
+    """SDF (N,) where every point the prior (N,) puts more than `band` from its surface (all in truncation units)
+    has the prior's sign: the surface can be moved by the residual only within the band around the surface the
+    depth measured. Keeps meshing and surface renders from drawing the residual's unconstrained zero crossings.
+    NumPy arrays (meshing) or tensors (rendering), float32 either way."""
+    xp = torch if isinstance(sdf, torch.Tensor) else np
+    flip = (abs(prior) > band) & (xp.sign(sdf) != xp.sign(prior))
+    return xp.where(flip, prior, sdf)
 
 
 class HybridField(nn.Module):

@@ -19,11 +19,11 @@ COLOR_SUPERVISION: tuple[str, ...] = ("none", "surface", "volume")
 surface point, or volume-rendered colour."""
 
 
-def check_rgb_loss(name: str, supervision: str = "volume", color_prior: bool = False) -> None:
+def check_color_settings(rgb_loss: str, supervision: str = "volume", color_prior: bool = False) -> None:
     """Raise ConfigError for an unknown mapping.rgb_loss or mapping.color_supervision, or for a map with neither
     colour priors nor colour training."""
-    if name not in RGB_LOSSES:
-        raise ConfigError(f"mapping.rgb_loss: unknown {name!r}; use one of {RGB_LOSSES}")
+    if rgb_loss not in RGB_LOSSES:
+        raise ConfigError(f"mapping.rgb_loss: unknown {rgb_loss!r}; use one of {RGB_LOSSES}")
     if supervision not in COLOR_SUPERVISION:
         raise ConfigError(f"mapping.color_supervision: unknown {supervision!r}; use one of {COLOR_SUPERVISION}")
     if supervision == "none" and not color_prior:

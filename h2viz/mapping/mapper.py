@@ -16,7 +16,7 @@ from h2viz.config import MappingConfig
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.keyframes import KeyframeSet
-from h2viz.mapping.losses import check_rgb_loss, color_error, mapping_losses
+from h2viz.mapping.losses import check_color_settings, color_error, mapping_losses
 from h2viz.mapping.mesh_job import FrozenField, MeshJob
 from h2viz.mapping.meshing import ChunkedMesher, export_mesh, merge_chunks
 from h2viz.mapping.octree import VoxelOctree
@@ -50,7 +50,7 @@ class Mapper:
     """Octree SDF priors + hash-grid residual field, optimised frame by frame with coverage keyframes."""
 
     def __init__(self, cfg: MappingConfig) -> None:
-        check_rgb_loss(cfg.rgb_loss, cfg.color_supervision, cfg.color_prior)
+        check_color_settings(cfg.rgb_loss, cfg.color_supervision, cfg.color_prior)
         self.cfg = cfg
         self.surface_color = cfg.color_supervision == "surface"  # colour learned on a batch of its own
         self.volume_color = cfg.color_supervision == "volume"  # colour learned in the geometry batch

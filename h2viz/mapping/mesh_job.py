@@ -15,21 +15,13 @@ import numpy as np
 import torch
 
 from h2viz.mapping.decoder_numba import decode_range, decoder_weights, is_supported
-from h2viz.mapping.field import HybridField
+from h2viz.mapping.field import HybridField, keep_prior_sign
 from h2viz.mapping.meshing import ChunkedMesher, ChunkKey
 from h2viz.mapping.prior_numba import blend_range
 from h2viz.mapping.support import ObservedSupport
 from h2viz.types import MeshChunk
 
 FIELD_BATCH = 1 << 16  # points per network call (the activations stay in cache)
-
-
-def keep_prior_sign(sdf: np.ndarray, prior: np.ndarray, band: float) -> np.ndarray:
-    """SDF (N,) where every point the prior (N,) puts more than `band` from its surface (all in truncation units)
-    has the prior's sign: the surface can be moved by the residual only within the band around the surface the
-    depth measured. Keeps meshing from drawing the residual's unconstrained zero crossings."""
-    flip = (np.abs(prior) > band) & (np.sign(sdf) != np.sign(prior))
-    return np.where(flip, prior, sdf).astype(np.float32)
 
 
 class FrozenField:

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from h2viz.config import MappingConfig
-from h2viz.mapping.field import HybridField
+from h2viz.mapping.field import HybridField, keep_prior_sign
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.rays import pixel_rays
 from h2viz.mapping.rendering import (
@@ -131,8 +131,7 @@ def surface_depth(
     the outer face of the allocated voxels, with no voxel behind it to cross into) takes the volume-rendered depth
     there, under the same observed-space test."""
     if params.prior_band > 0:
-        prior = field.prior_sdf(samples.points, samples.voxel)  # (S,)
-        sdf = torch.where((prior.abs() > params.prior_band) & (torch.sign(sdf) != torch.sign(prior)), prior, sdf)
+        sdf = keep_prior_sign(sdf, field.prior_sdf(samples.points, samples.voxel), params.prior_band)
     hits = surface_crossings(samples, sdf, 1.5 * params.step_m)
     R, dev = origins.shape[0], sdf.device
     first, crossed = first_hit(hits, _drawable(hits.points, support), R)
@@ -140,10 +139,12 @@ def surface_depth(
     points = torch.zeros(R, 3, device=dev)
     depth[crossed] = hits.t[first[crossed]]
     points[crossed] = hits.points[first[crossed]]
-    any_crossing = torch.zeros(R, dtype=torch.bool, device=dev)
-    any_crossing[hits.ray] = True
-    weights = render_weights(samples, sdf, params.truncation_m, params.temperature)  # (S,)
-    edge = ~any_crossing & (segment_sum(weights, samples.ray, R) > HIT_WEIGHT)  # (R,) a surface on the map's edge
+    uncrossed = torch.ones(R, dtype=torch.bool, device=dev)
+    uncrossed[hits.ray] = False
+    rest = uncrossed[samples.ray]  # (S,) the samples of rays without a crossing: only those need weights
+    samples, sdf = samples.select(rest), sdf[rest]
+    weights = render_weights(samples, sdf, params.truncation_m, params.temperature)  # (S',)
+    edge = uncrossed & (segment_sum(weights, samples.ray, R) > HIT_WEIGHT)  # (R,) a surface on the map's edge
     if bool(edge.any()):
         t_edge = composite(samples, weights, None).depth  # (R,)
         ray_of = torch.nonzero(edge)[:, 0]
@@ -178,7 +179,8 @@ def shade(
         depth, hit, points = surface_depth(field, origins, dirs, samples, sdf, params, support)
         if mode == "rgb":
             rgb = torch.zeros(origins.shape[0], 3, device=origins.device)
-            rgb[hit] = field.color(points) if points.shape[0] else rgb[hit]
+            if points.shape[0]:
+                rgb[hit] = field.color(points)
             return rgb
     else:
         weights = render_weights(samples, sdf, params.truncation_m, params.temperature)  # (S,)

@@ -95,16 +95,16 @@ def test_colour_term_is_the_mean_absolute_or_squared_error(rgb_loss: str, error:
 
 def test_an_unknown_colour_loss_is_refused_by_name() -> None:
     with pytest.raises(ConfigError, match="mapping.rgb_loss: unknown 'huber'"):
-        losses.check_rgb_loss("huber")
+        losses.check_color_settings("huber")
 
 
 def test_colour_supervision_is_checked_by_name_and_needs_a_colour_source() -> None:
     with pytest.raises(ConfigError, match="mapping.color_supervision: unknown 'pixels'"):
-        losses.check_rgb_loss("l2", "pixels")
+        losses.check_color_settings("l2", "pixels")
     with pytest.raises(ConfigError, match="color_prior is false"):
-        losses.check_rgb_loss("l2", "none", color_prior=False)
+        losses.check_color_settings("l2", "none", color_prior=False)
     for supervision in ("none", "surface", "volume"):
-        losses.check_rgb_loss("l2", supervision, color_prior=True)
+        losses.check_color_settings("l2", supervision, color_prior=True)
 
 
 @pytest.mark.parametrize("supervision", ["none", "surface", "volume"])
