@@ -134,6 +134,9 @@ class MappingConfig:
     """Also allocate the neighbour across a face that a voxel's points hug (expanded voxels)."""
     priors: bool = True
     """Initialise corner SDF priors by projecting depth (off = zero priors, ablation)."""
+    fine_priors: bool = False
+    """Also fuse every frame's truncated projective SDF into a 1.25 cm lattice in each voxel (at 10 cm voxels;
+    h2viz.mapping.fine_prior), which replaces the corner priors wherever frames reached it."""
     hash_levels: int = 4
     """L: number of hash-grid levels."""
     hash_features: int = 2

@@ -50,6 +50,7 @@ def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = N
         "observed": mapper.observed.state_dict(),
         "priors": mapper.field.priors.detach().cpu(),
         "color_prior": None if mapper.field.color_prior is None else mapper.field.color_prior.sums.cpu().clone(),
+        "fine_prior": None if mapper.field.fine_prior is None else mapper.field.fine_prior.state.cpu().clone(),
         "field": {k: v.cpu() for k, v in mapper.field.state_dict().items()},
         "optim": mapper.optim.state_dict(),
         "net_optim": mapper.net_optim.state_dict(),
@@ -100,6 +101,7 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
             color_hidden=saved.color_hidden,
             color_layers=saved.color_layers,
             color_prior=saved.color_prior,
+            fine_priors=saved.fine_priors,
             priors=saved.priors,
         )
     mapper = Mapper(saved)
@@ -110,6 +112,8 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
     mapper.field.priors = state["priors"].to(mapper.device).requires_grad_(saved.priors)
     if mapper.field.color_prior is not None and state.get("color_prior") is not None:
         mapper.field.color_prior.load(state["color_prior"])
+    if mapper.field.fine_prior is not None and state.get("fine_prior") is not None:
+        mapper.field.fine_prior.load(state["fine_prior"])
     mapper.optim.load_state_dict(state["optim"])
     mapper.net_optim.load_state_dict(state["net_optim"])
     mapper.keyframes.load_state_dict(state["keyframes"])

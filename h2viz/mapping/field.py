@@ -16,6 +16,7 @@ from h2viz.config import MappingConfig
 from h2viz.mapping.bf16 import decode_bf16, use_bf16
 from h2viz.mapping.color_prior import ColorPrior
 from h2viz.mapping.encoding import HashGrid
+from h2viz.mapping.fine_prior import FinePrior
 from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.tiled import tiled
@@ -76,6 +77,8 @@ class HybridField(nn.Module):
         # surface on every corner whose projection failed.
         self.unset_prior = 1.0 if cfg.priors else 0.0
         self.color_prior = ColorPrior(cfg.voxel_size_m, fused=cfg.kernels == "auto") if cfg.color_prior else None
+        fine = cfg.fine_priors and cfg.priors
+        self.fine_prior = FinePrior(cfg.voxel_size_m, cfg.truncation_m, fused=cfg.kernels == "auto") if fine else None
         self.octree: VoxelOctree | None = None  # where the colour prior looks points up (set by sync)
         self.priors = torch.zeros(0)  # (C,) corner SDF in tr units, grows with the octree
         self.corner_ids = torch.zeros(0, 8, dtype=torch.long)  # (V,8)
@@ -94,6 +97,9 @@ class HybridField(nn.Module):
         if self.color_prior is not None:
             self.color_prior.to(dev)
             self.color_prior.grow(octree.n_voxels)
+        if self.fine_prior is not None:
+            self.fine_prior.to(dev)
+            self.fine_prior.grow(octree.n_voxels)
         self.octree = octree
 
     def add_colors(self, points: torch.Tensor, rgb: torch.Tensor) -> None:
@@ -102,6 +108,15 @@ class HybridField(nn.Module):
             self.color_prior.add(self.octree, self.voxel_origin, points, rgb)
 
     def prior_sdf(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
+        """Prior SDF (N,) at points (N,3) in voxels (N,): the fine lattice's blend where frames reached it, the
+        corner priors' trilinear interpolation elsewhere (gradients reach the corner priors by their share)."""
+        coarse = self.corner_prior(points, voxel)
+        if self.fine_prior is None:
+            return coarse
+        value, cover = self.fine_prior.blend(self.voxel_origin, points, voxel)  # (N,), (N,)
+        return value.to(coarse.device) + (1.0 - cover.to(coarse.device)) * coarse
+
+    def corner_prior(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
         """Trilinear interpolation of the 8 corner priors of each point's voxel: (N,3), (N,) -> (N,)."""
         fused = kernel_module("prior_numba") if self.kernels == "auto" else None
         if fused is not None and points.device.type == "cpu" and not (torch.is_grad_enabled() and points.requires_grad):

@@ -166,6 +166,8 @@ class Mapper:
         cids, vals = self.priors.initialize(self.octree, frame.depth_m, frame.K, frame.T_world_camera)
         if cids.size:
             self.field.priors[torch.from_numpy(cids).to(self.device)] = torch.from_numpy(vals).to(self.device)
+        if self.field.fine_prior is not None:
+            self.field.fine_prior.fuse(self.field.voxel_origin, frame.depth_m, frame.K, frame.T_world_camera)
 
     def _add_keyframe(self, frame: RgbdFrame, rays: FrameRays, observed: np.ndarray) -> None:
         self.keyframes.insert(frame.index, observed)
@@ -370,7 +372,7 @@ class Mapper:
         """Render any camera: rgb (H,W,3) [0,1], depth/prior (H,W) metres, normal (H,W,3) [-1,1]."""
         params = RenderParams.from_config(self.cfg, self.max_depth_m)
         trusted = None  # voxels whose 8 corners all hold a measured prior: there the priors locate the surface
-        if self.cfg.priors:
+        if self.cfg.priors and self.field.fine_prior is None:  # the corner priors miss what only the fine one holds
             trusted = torch.ones(self.octree.n_voxels, dtype=torch.bool)
             trusted[torch.from_numpy(self.priors.pending)] = False
         support = self.drawable() if params.surface else None

@@ -33,16 +33,17 @@ class FrozenField:
     """
 
     def __init__(self, field: HybridField, truncation_m: float, prior_band: float = 0.0) -> None:
-        prior, octree = field.color_prior, field.octree
-        field.color_prior, field.octree = None, None  # shared, not copied: the lattices take ~12 kB a voxel
+        prior, fine, octree = field.color_prior, field.fine_prior, field.octree
+        field.color_prior, field.fine_prior, field.octree = None, None, None  # shared, not copied (~18 kB a voxel)
         try:
             with torch.no_grad():
                 frozen = copy.deepcopy(field)
                 frozen.requires_grad_(False)
                 frozen.priors = frozen.priors.detach()
         finally:
-            field.color_prior, field.octree = prior, octree
+            field.color_prior, field.fine_prior, field.octree = prior, fine, octree
         frozen.color_prior = None if prior is None else prior.shared()
+        frozen.fine_prior = None if fine is None else fine.shared()
         frozen.octree = octree  # its lookups beyond the frozen voxels are ignored by the colour prior
         self.field = frozen
         self.truncation_m = float(truncation_m)
@@ -60,6 +61,9 @@ class FrozenField:
         vox = np.ascontiguousarray(voxel_ids, dtype=np.int64)
         inv_vs = 1.0 / self.field.voxel_size_m
         blend_range(pts, vox, self._origin, self._corner_ids, self._priors, inv_vs, 0, len(pts), out)
+        if self.field.fine_prior is not None:
+            value, cover = self.field.fine_prior.blend_numpy(self._origin, pts, vox)
+            out = value + (np.float32(1.0) - cover) * out
         return out
 
     @torch.no_grad()

@@ -119,9 +119,19 @@ class LatticeSearch:
     def run(self, device: torch.device) -> LatticeSearch:
         """Propose and evaluate until nothing more may carry weight."""
         while (idx := self.propose()).size:
-            residual = residual_sdf(self.field, self.points(idx).to(device))
-            self.sdf[idx] = self.lat.prior[idx] + residual.float().cpu().numpy()
+            points = self.points(idx).to(device)
+            residual = residual_sdf(self.field, points).float().cpu().numpy()
+            self.sdf[idx] = self._prior(points, idx) + residual
         return self
+
+    def _prior(self, points: torch.Tensor, idx: np.ndarray) -> np.ndarray:
+        """The prior SDF (n,) at lattice samples idx (n,): the walk's corner prior, or the field's own where it
+        has fine priors that the walk does not see."""
+        if self.field.fine_prior is None:
+            return self.lat.prior[idx]
+        voxel = torch.from_numpy(self.lat.voxel[idx]).to(points.device)
+        with torch.no_grad():
+            return self.field.prior_sdf(points, voxel).float().cpu().numpy()
 
     def samples(self, keep_ray: np.ndarray | None) -> tuple[np.ndarray, ...]:
         """The evaluated samples of the rays with keep_ray (R,) True (all when None), ray-major:
