@@ -61,6 +61,8 @@ def build_config(args: argparse.Namespace) -> Config:
         cfg.viewer.host = args.host
     if getattr(args, "port", None):
         cfg.viewer.port = args.port
+    if getattr(args, "realtime", False):
+        cfg.source.realtime = True
     return apply_overrides(cfg, args.set)
 
 
@@ -68,7 +70,7 @@ def cmd_map(args: argparse.Namespace) -> int:
     from h2viz.pipeline import run_map
 
     cfg = build_config(args)
-    result = run_map(cfg, resume=args.resume, gt_mesh=args.gt_mesh, progress=not args.quiet, realtime=args.realtime)
+    result = run_map(cfg, args.resume, args.gt_mesh, progress=not args.quiet, realtime=cfg.source.realtime)
     print(result.summary())
     return 0
 
@@ -136,7 +138,8 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--realtime",
         action="store_true",
-        help="play the source at its own frame rate and map the newest frame whenever the mapper is free",
+        help="play the source at its own frame rate and map the newest frame whenever the mapper is free "
+        "(source.realtime)",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_map)
