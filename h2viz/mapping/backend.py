@@ -15,7 +15,6 @@ numba stays a dependency of the fast CPU path only.
 from __future__ import annotations
 
 import functools
-import importlib
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -75,26 +74,30 @@ REFERENCE = Backend("torch", torch.device("cpu"))
 """The pure-torch CPU backend: what a stage built without a backend runs (the reference of every kernel)."""
 
 
-def _import(name: str) -> ModuleType:
-    return importlib.import_module(f"h2viz.mapping.{name}")
-
-
 @functools.cache
 def _compiled() -> tuple[TensorKernels, ArrayKernels] | None:
     """Every kernel module, imported once; None when numba (or a kernel module) cannot be imported."""
     try:
-        tensors = TensorKernels(
-            *(_import(n) for n in ("frame_numba", "band", "hash_numba", "prior_numba", "decoder_numba")),
-            *(_import(n) for n in ("loss_numba", "optim_numba", "color_prior_numba")),
-        )
-        arrays = ArrayKernels(
-            *(_import(n) for n in ("raymarch", "surface", "marching_numba", "support_numba")),
-            tensors.prior,
-            tensors.decoder,
+        from h2viz.mapping import (
+            band,
+            color_prior_numba,
+            decoder_numba,
+            frame_numba,
+            hash_numba,
+            loss_numba,
+            marching_numba,
+            optim_numba,
+            prior_numba,
+            raymarch,
+            support_numba,
+            surface,
         )
     except ImportError:
         return None
-    return tensors, arrays
+    tensors = TensorKernels(
+        frame_numba, band, hash_numba, prior_numba, decoder_numba, loss_numba, optim_numba, color_prior_numba
+    )
+    return tensors, ArrayKernels(raymarch, surface, marching_numba, support_numba, prior_numba, decoder_numba)
 
 
 def pick_device(name: str) -> torch.device:
