@@ -59,6 +59,8 @@ class SyntheticConfig:
     """Horizontal field of view of the virtual camera, degrees."""
     prefetch: int = 4
     """Frames rendered ahead in a background thread (0 = render on demand)."""
+    recipe: str = ""
+    """YAML file with the room's palettes (empty = assets/synthetic_room.yaml, shipped with h2viz: copy and edit it)."""
 
 
 @dataclass

@@ -53,7 +53,8 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
           str(tmp / "dist"), str(src)], cwd=tmp)  # fmt: skip
     (wheel,) = (tmp / "dist").glob("h2viz-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
-    assert {"h2viz/configs/default.yaml", "h2viz/configs/replica.yaml", "h2viz/configs/paper.yaml"} <= set(names)
+    shipped = {"h2viz/configs/default.yaml", "h2viz/configs/replica.yaml", "h2viz/assets/synthetic_room.yaml"}
+    assert shipped <= set(names)
     _run([sys.executable, "-m", "venv", str(tmp / "venv")], cwd=tmp)
     bin_dir = tmp / "venv" / "bin"
     purelib = _run([str(bin_dir / "python"), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
