@@ -2,9 +2,9 @@
 
 Reproduce:  .venv/bin/python bench/encoding.py            (--compile adds the torch.compile row,
                                                            --alternatives the reference and design comparisons)
-Rows: "numba fused" is what HashGrid(kernels="auto") runs on the CPU; "numba kernels only" times the same
+Rows: "numba fused" is what HashGrid runs on the CPU with the numba backend; "numba kernels only" times the same
 forward and table-gradient kernels without autograd and with a reused gradient buffer (the difference is
-allocating and page-faulting the dense (L,T,F) gradient, plus autograd); "torch eager" is kernels="torch"
+allocating and page-faulting the dense (L,T,F) gradient, plus autograd); "torch eager" is the torch backend
 (and the path for CUDA and for gradients w.r.t. points); HashGrid(compile=True) uses the compiled row's
 forward for gradient-free calls that the fused kernels do not serve.
 
@@ -31,6 +31,7 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from h2viz.mapping.backend import resolve_backend  # noqa: E402
 from h2viz.mapping.encoding import (  # noqa: E402
     HASH_PRIMES,
     HashGrid,
@@ -41,7 +42,6 @@ from h2viz.mapping.encoding import (  # noqa: E402
     hash_grid_reference,
     level_cell_sizes,
 )
-from h2viz.mapping.kernels import kernel_module  # noqa: E402
 
 EncodeFn = Callable[[Tensor, Tensor, list[float]], Tensor]
 
@@ -143,8 +143,9 @@ def time_pair(fn: EncodeFn, grid: HashGrid, x: Tensor, upstream: Tensor) -> Timi
 
 def time_kernels_only(grid: HashGrid, x: Tensor, upstream: Tensor, grad_buffer: Tensor) -> Timing:
     """The fused forward and table-gradient kernels alone: no autograd, the gradient buffer is reused."""
-    fused = kernel_module("hash_numba")
-    assert fused is not None
+    kernels = resolve_backend("auto", "cpu").tensor_kernels
+    assert kernels is not None
+    fused = kernels.hash
     x64 = x.double()
     w0, c0 = time.perf_counter(), time.process_time()
     fused.forward_features(x64, grid.tables, grid.cell_sizes_m)
@@ -158,10 +159,10 @@ def time_kernels_only(grid: HashGrid, x: Tensor, upstream: Tensor, grad_buffer: 
 def variants(compiled: bool, alternatives: bool) -> dict[str, EncodeFn]:
     """The rows of the table: the fused kernels, the torch module path, optionally compile and alternatives."""
     rows: dict[str, EncodeFn] = {}
-    fused = kernel_module("hash_numba")
-    if fused is not None:
-        rows["numba fused"] = fused.fused_encode
-        rows["numba kernels only"] = fused.fused_encode  # timed by time_kernels_only
+    kernels = resolve_backend("auto", "cpu").tensor_kernels
+    if kernels is not None:
+        rows["numba fused"] = kernels.hash.fused_encode
+        rows["numba kernels only"] = kernels.hash.fused_encode  # timed by time_kernels_only
     rows["torch eager"] = encode
     if compiled:
         rows["compiled encode_for_compile"] = torch.compile(encode_for_compile, dynamic=True)

@@ -91,7 +91,7 @@ def reference_render(mapper: Mapper) -> Any:
 
     def render(K: np.ndarray, T: np.ndarray, h: int, w: int, mode: str) -> np.ndarray:
         params = RenderParams.from_config(mapper.cfg, mapper.max_depth_m)
-        return render_image_reference(mapper.field, mapper.octree, K, T, h, w, mode, params)
+        return render_image_reference(mapper.field, mapper.octree, K, T, h, w, mode, params, backend=mapper.backend)
 
     return render
 

@@ -22,7 +22,7 @@ from bench.tsdf_baseline import TsdfConfig, import_open3d
 from h2viz.config import Config, load_config
 from h2viz.errors import H2vizError
 from h2viz.eval.report import Renderer, load_mesh
-from h2viz.mapping.kernels import kernel_module
+from h2viz.mapping.backend import resolve_backend
 from h2viz.mapping.mapper import Mapper
 from h2viz.pipeline import EvalFrames, evaluate
 from h2viz.sources.base import FrameSource, make_source
@@ -85,9 +85,7 @@ class H2vizMethod:
 
     def __init__(self, cfg: Config) -> None:
         self.mapper = Mapper(cfg.mapping)
-        fused = cfg.mapping.kernels == "auto" and self.mapper.device.type == "cpu"
-        fused = fused and kernel_module("hash_numba") is not None
-        self.kernels = "fused numba" if fused else "pure torch"
+        self.kernels = "fused numba" if self.mapper.backend.name == "numba" else "pure torch"
         if self.mapper.field.color_bf16 and self.mapper.device.type == "cpu":
             self.kernels += ", bfloat16 colour decoder"
 
@@ -185,7 +183,7 @@ def measure(run: Run, cfg: Config, gt_mesh: str, quality: bool) -> None:
         if run.method == "tsdf":  # the method's libraries are loaded before the memory baseline
             import_open3d()
         else:
-            kernel_module("hash_numba")
+            resolve_backend(cfg.mapping.kernels, cfg.mapping.device)  # imports the kernels
         run.start_rss_mb = peak_rss_mb()
         method: H2vizMethod | TsdfMethod = TsdfMethod(cfg) if run.method == "tsdf" else H2vizMethod(cfg)
         run.kernels, run.threads = method.kernels, torch.get_num_threads()

@@ -61,6 +61,8 @@ def build_config(args: argparse.Namespace) -> Config:
         cfg.viewer.host = args.host
     if getattr(args, "port", None):
         cfg.viewer.port = args.port
+    if getattr(args, "realtime", False):
+        cfg.source.realtime = True
     return apply_overrides(cfg, args.set)
 
 
@@ -68,7 +70,7 @@ def cmd_map(args: argparse.Namespace) -> int:
     from h2viz.pipeline import run_map
 
     cfg = build_config(args)
-    result = run_map(cfg, resume=args.resume, gt_mesh=args.gt_mesh, progress=not args.quiet, realtime=args.realtime)
+    result = run_map(cfg, args.resume, args.gt_mesh, progress=not args.quiet, realtime=cfg.source.realtime)
     print(result.summary())
     return 0
 
@@ -136,7 +138,8 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--realtime",
         action="store_true",
-        help="play the source at its own frame rate and map the newest frame whenever the mapper is free",
+        help="play the source at its own frame rate and map the newest frame whenever the mapper is free "
+        "(source.realtime)",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_map)
@@ -145,6 +148,7 @@ def make_parser() -> argparse.ArgumentParser:
     _source_args(p)
     p.add_argument("--host", default=None, help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=None, help="port (default 8080)")
+    p.add_argument("--realtime", action="store_true", help="start in real-time mode (source.realtime)")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("eval", help="Acc / Comp / Comp ratio of a mesh against ground truth")
@@ -171,7 +175,22 @@ def make_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = make_parser().parse_args(argv)
+    return _run(make_parser().parse_args(argv))
+
+
+def app_main(argv: list[str]) -> int:
+    """`python app.py`: `h2viz view` with the same flags, plus bare `section.key=value` overrides (as --set)."""
+    parser = make_parser()
+    args, extra = parser.parse_known_args(["view", *argv])
+    wrong = [t for t in extra if t.startswith("-") or "=" not in t]
+    if wrong:
+        parser.error(f"app.py: unrecognised {' '.join(wrong)}; flags are those of `h2viz view --help`, overrides "
+                     "look like section.key=value (e.g. viewer.port=8081)")  # fmt: skip
+    args.set = [*extra, *args.set]
+    return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
     )

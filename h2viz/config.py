@@ -13,6 +13,8 @@ import inspect
 import textwrap
 import typing
 from dataclasses import dataclass, field
+from importlib import resources
+from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +22,10 @@ import yaml
 
 from h2viz.errors import ConfigError
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_DIR: Traversable = resources.files("h2viz") / "configs"
+"""The configuration files shipped inside the package (in a clone, `configs/` at the root is the same folder)."""
+SOURCE_CONFIGS = ("synthetic", "replica", "scannet", "tum", "7scenes", "rosbag")
+"""Formats with a per-source file in CONFIG_DIR (their intrinsics, depth range, keyframe IoU...)."""
 
 
 @dataclass
@@ -54,6 +59,8 @@ class SyntheticConfig:
     """Horizontal field of view of the virtual camera, degrees."""
     prefetch: int = 4
     """Frames rendered ahead in a background thread (0 = render on demand)."""
+    recipe: str = ""
+    """YAML file with the room's palettes (empty = assets/synthetic_room.yaml, shipped with h2viz: copy and edit it)."""
 
 
 @dataclass
@@ -88,8 +95,6 @@ class RosbagConfig:
     """Largest interval between two pose samples that a frame's pose is interpolated across."""
     depth_scale: float = 0.001
     """Metres per unit of 16UC1 depth images."""
-    realtime: bool = False
-    """Play at the bag's rate and take the newest frame when mapping is slower (dropped ones are counted)."""
 
 
 @dataclass
@@ -108,6 +113,10 @@ class SourceConfig:
     """Depth above this is treated as invalid."""
     downscale: int = 1
     """Integer factor to shrink colour, depth and intrinsics by (1 = full resolution)."""
+    realtime: bool = False
+    """Real-time mode: play the frames at their timestamps' own rate (a bag at its recorded rate) and map the newest
+    frame whenever the mapper is free, counting the ones dropped; `h2viz map --realtime` sets it, and the
+    dashboard's Real-time toggle starts from it. Off: every frame is mapped, as fast as mapping goes."""
     intrinsics: IntrinsicsConfig = field(default_factory=IntrinsicsConfig)
     """Camera intrinsics where the data has none (Replica) or to override them."""
     depth_scale: float = 0.0
@@ -295,13 +304,11 @@ class ViewerConfig:
     """Address to bind; 127.0.0.1 keeps the dashboard local."""
     port: int = 8080
     """Port of the dashboard."""
-    realtime: bool = False
-    """Map the newest frame whenever the mapper is free instead of every frame."""
     mesh_update_hz: float = 2.0
     """Largest rate of mesh updates sent to browsers."""
     render_width: int = 640
     """Width of refined novel-view renders (moving renders use a quarter)."""
-    mesh_resolution: int = 4
+    live_mesh_resolution: int = 4
     """Marching-cubes samples per leaf voxel edge of the live mesh (2.5 cm cells: a quarter of the triangles
     and an eighth of the field evaluations of mapping.mesh_resolution = 8, which mesh downloads use)."""
     start_paused: bool = False
@@ -398,8 +405,8 @@ def _merge(obj: Any, data: dict[str, Any], origin: str, prefix: str = "") -> Non
             setattr(obj, key, _coerce(value, hints[key], f"{origin}: {dotted}"))
 
 
-def load_yaml(path: str | Path) -> dict[str, Any]:
-    path = Path(path)
+def load_yaml(path: str | Path | Traversable) -> dict[str, Any]:
+    path = Path(path) if isinstance(path, str) else path
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist; pass an existing YAML file to --config")
     try:
@@ -411,7 +418,7 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def apply_file(cfg: Config, path: str | Path) -> Config:
+def apply_file(cfg: Config, path: str | Path | Traversable) -> Config:
     """Merge one YAML file into `cfg` (strict: unknown keys are errors naming the file)."""
     _merge(cfg, load_yaml(path), str(path))
     return cfg
@@ -431,18 +438,29 @@ def apply_overrides(cfg: Config, overrides: list[str]) -> Config:
     return cfg
 
 
-def source_config_file(fmt: str) -> Path | None:
-    """The per-source override file in configs/ for a format, if there is one."""
-    path = CONFIG_DIR / f"{fmt}.yaml"
-    return path if path.is_file() else None
+def packaged_config(name: str) -> Traversable:
+    """A configuration file shipped with h2viz (e.g. "default", "paper", "replica"); ConfigError when it is missing
+    (an incomplete installation)."""
+    path = CONFIG_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(
+            f"h2viz's configuration file {name}.yaml is missing from {CONFIG_DIR}; the installation is incomplete: "
+            "reinstall h2viz (pip install --force-reinstall h2viz, or pip install -e . in a clone)"
+        )
+    return path
 
 
-def load_config(files: list[str | Path] | None = None, overrides: list[str] | None = None) -> Config:
-    """Defaults <- configs/default.yaml <- each file in order <- dotted overrides."""
+def source_config_file(fmt: str) -> Traversable | None:
+    """The per-source override file shipped for a format (None for formats without one, e.g. auto)."""
+    return packaged_config(fmt) if fmt in SOURCE_CONFIGS else None
+
+
+def load_config(
+    files: list[str | Path | Traversable] | None = None, overrides: list[str] | None = None
+) -> Config:
+    """Defaults <- the packaged default.yaml <- each file in order <- dotted overrides."""
     cfg = Config()
-    default = CONFIG_DIR / "default.yaml"
-    if default.is_file():
-        apply_file(cfg, default)
+    apply_file(cfg, packaged_config("default"))
     for f in files or []:
         apply_file(cfg, f)
     return apply_overrides(cfg, overrides or [])
@@ -472,6 +490,7 @@ DEFAULTS_HEADER = (
 )
 
 
-def write_defaults(path: str | Path = CONFIG_DIR / "default.yaml") -> None:
-    """Write configs/default.yaml from the dataclass defaults."""
-    Path(path).write_text(DEFAULTS_HEADER + yaml.safe_dump(to_dict(Config()), sort_keys=False))
+def write_defaults(path: str | Path | None = None) -> None:
+    """Write configs/default.yaml (the packaged defaults) from the dataclass defaults."""
+    target = Path(str(CONFIG_DIR / "default.yaml") if path is None else path)
+    target.write_text(DEFAULTS_HEADER + yaml.safe_dump(to_dict(Config()), sort_keys=False))

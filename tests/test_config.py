@@ -8,8 +8,11 @@ from pathlib import Path
 import pytest
 import yaml
 
+import h2viz.config as config_module
+from h2viz.cli import build_config, make_parser
 from h2viz.config import (
     CONFIG_DIR,
+    SOURCE_CONFIGS,
     Config,
     apply_file,
     apply_overrides,
@@ -17,6 +20,8 @@ from h2viz.config import (
     field_docs,
     from_dict,
     load_config,
+    packaged_config,
+    source_config_file,
     to_dict,
 )
 from h2viz.errors import ConfigError
@@ -75,7 +80,7 @@ def test_default_yaml_matches_the_dataclass_defaults() -> None:
 
 
 def test_every_shipped_config_file_loads() -> None:
-    files = sorted(CONFIG_DIR.glob("*.yaml"))
+    files = sorted((f for f in CONFIG_DIR.iterdir() if f.name.endswith(".yaml")), key=lambda f: f.name)
     assert len(files) >= 7
     for f in files:
         apply_file(Config(), f)
@@ -87,3 +92,39 @@ def test_resolved_config_round_trips(tmp_path: Path) -> None:
     again = load_config([tmp_path / "config.yaml"])
     assert again == cfg
     assert from_dict(to_dict(cfg)) == cfg
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_configs_ship_inside_the_package_and_configs_in_a_clone_is_the_same_folder(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """`configs/` at the root of a clone is what `h2viz/configs` (the packaged files) points at: editing one edits
+    the other, and `--config configs/paper.yaml` keeps working from the clone."""
+    packaged = Path(str(CONFIG_DIR))
+    assert packaged.parent == ROOT / "h2viz" and packaged.resolve() == (ROOT / "configs").resolve()
+    for fmt in SOURCE_CONFIGS:
+        assert source_config_file(fmt) is not None
+    assert source_config_file("auto") is None
+    args = make_parser().parse_args(["map", "--config", "configs/paper.yaml", "--data", ""])
+    monkeypatch.chdir(ROOT)
+    cfg = build_config(args)
+    paper = yaml.safe_load((ROOT / "configs" / "paper.yaml").read_text())
+    for key, value in paper["mapping"].items():
+        assert getattr(cfg.mapping, key) == value, key
+
+
+def test_a_missing_packaged_config_is_an_error_that_says_to_reinstall(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "default.yaml").write_text((Path(str(CONFIG_DIR)) / "default.yaml").read_text())
+    monkeypatch.setattr(config_module, "CONFIG_DIR", tmp_path)  # an installation without the per-source files
+    load_config()  # the defaults are there
+    with pytest.raises(ConfigError, match=r"replica.yaml is missing from .*reinstall h2viz"):
+        source_config_file("replica")
+    (tmp_path / "default.yaml").unlink()
+    with pytest.raises(ConfigError, match=r"default.yaml is missing"):
+        load_config()
+    with pytest.raises(ConfigError, match=r"paper.yaml is missing"):
+        packaged_config("paper")

@@ -591,7 +591,7 @@ def test_no_live_mesh_without_viewers_and_the_first_viewer_gets_every_change() -
 def test_live_mesh_is_coarse_and_downloads_use_the_mapping_resolution(make_worker: Factory) -> None:
     cfg = Config()
     cfg.mapping = tiny_mapping_config()  # mesh_resolution 4: what downloads use
-    cfg.viewer.mesh_resolution = 2  # the live mesh
+    cfg.viewer.live_mesh_resolution = 2  # the live mesh
     mapper = recording_mapper(cfg.mapping)
     worker = make_worker(BoxRoomSource(n=5), mapper, cfg=cfg)
     assert worker.wait_finished(60) and not worker.errors

@@ -27,6 +27,7 @@ from h2viz.config import MappingConfig
 from h2viz.eval.metrics import EvalError, psnr
 from h2viz.eval.report import EvalView, scale_intrinsics, shrink_view
 from h2viz.geometry import backproject
+from h2viz.mapping.backend import resolve_backend
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.rendering import composite, live_samples, render_weights
 from h2viz.mapping.sampling import Samples
@@ -75,9 +76,10 @@ class CeilingPoint:
 
 
 def colour_field(cfg: MappingConfig) -> HybridField:
-    """The mapping's field for `cfg`; only its colour grid and decoder are used here."""
+    """The mapping's field for `cfg` on the CPU (with the kernels `cfg.kernels` picks); only its colour grid and
+    decoder are used here."""
     torch.manual_seed(cfg.seed)
-    return HybridField(cfg)
+    return HybridField(cfg, resolve_backend(cfg.kernels, "cpu"))
 
 
 @torch.no_grad()

@@ -11,6 +11,7 @@ import torch
 
 from h2viz.config import MappingConfig
 from h2viz.errors import CheckpointError
+from h2viz.mapping.backend import Backend
 from h2viz.mapping.mapper import Mapper
 from h2viz.mapping.rays import FrameRays
 from h2viz.types import RgbdFrame
@@ -30,14 +31,14 @@ def _keyframe_record(rays: FrameRays) -> dict[str, Any]:
     }
 
 
-def _keyframe_from_record(rec: dict[str, Any], device: torch.device) -> FrameRays:
+def _keyframe_from_record(rec: dict[str, Any], backend: Backend) -> FrameRays:
     h, w = rec["shape"]
     depth = np.zeros(h * w, np.float32)
     rgb = np.zeros((h * w, 3), np.uint8)
     depth[rec["valid"].numpy()] = rec["depth"].numpy()
     rgb[rec["valid"].numpy()] = rec["rgb"].numpy()
     frame = RgbdFrame(rec["index"], 0.0, rgb.reshape(h, w, 3), depth.reshape(h, w), rec["K"], rec["T_world_camera"])
-    return FrameRays(frame, device)
+    return FrameRays(frame, backend)
 
 
 def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = None) -> None:
@@ -117,7 +118,7 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
     mapper.optim.load_state_dict(state["optim"])
     mapper.net_optim.load_state_dict(state["net_optim"])
     mapper.keyframes.load_state_dict(state["keyframes"])
-    mapper.keyframe_rays = [_keyframe_from_record(r, mapper.device) for r in state["keyframe_frames"]]
+    mapper.keyframe_rays = [_keyframe_from_record(r, mapper.backend) for r in state["keyframe_frames"]]
     if "observed" in state:
         mapper.observed.load_state_dict(state["observed"])
     else:  # saved before observed cells were kept: rebuild them from the keyframes' depth

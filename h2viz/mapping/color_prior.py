@@ -12,11 +12,15 @@ optimisation: every pixel of every frame contributes, not only the few thousand 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 
-from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.octree import VoxelOctree
+
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend
 
 SUB = 8
 """Lattice cells per voxel edge (SUB + 1 lattice points per edge, 1.25 cm apart at 10 cm voxels)."""
@@ -30,24 +34,25 @@ _OFFSETS = torch.tensor([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz i
 
 class ColorPrior:
     """Weighted colour sums (V, (SUB+1)^3, 4) on each leaf voxel's lattice: r, g, b times weight, and the weight.
-    `fused` runs the numba kernels (h2viz.mapping.color_prior_numba) on the CPU; the torch code is their reference."""
+    A backend with tensor kernels runs the numba ones (h2viz.mapping.color_prior_numba) on the CPU; the torch code is
+    their reference (and runs without a backend)."""
 
-    def __init__(self, voxel_size_m: float, device: torch.device | str = "cpu", fused: bool = True) -> None:
+    def __init__(
+        self, voxel_size_m: float, device: torch.device | str = "cpu", backend: Backend | None = None
+    ) -> None:
         self.voxel_size_m = float(voxel_size_m)
         self.n = SUB + 1
         self.sums = torch.zeros(0, self.n**3, 4, device=device)  # (V, P, 4), a view of the first V of _storage
         self._storage: torch.Tensor | None = None
-        self.fused = fused
+        self.backend = backend
 
     def _kernels(self, points: torch.Tensor, octree: VoxelOctree) -> tuple[object, tuple] | None:
         """The numba module and the octree's hash table when the fast path applies, else None."""
-        kernels = kernel_module("color_prior_numba") if self.fused and points.device.type == "cpu" else None
-        if kernels is None:
+        k = None if self.backend is None else self.backend.cpu_kernels(points, self.sums)
+        if k is None or self.backend is None or self.backend.array_kernels is None:
             return None
-        from h2viz.mapping.raymarch import walk_table  # the octree's cached voxel hash table
-
-        table = walk_table(octree)
-        return kernels, (table.keys, table.ids)
+        table = self.backend.array_kernels.walk.walk_table(octree)  # the octree's cached voxel hash table
+        return k.color_prior, (table.keys, table.ids)
 
     def add(self, octree: VoxelOctree, voxel_origin: torch.Tensor, points: torch.Tensor, rgb: torch.Tensor) -> None:
         """Splat colours rgb (N,3) in [0,1] measured at world points (N,3); points outside the map are skipped."""
@@ -79,7 +84,7 @@ class ColorPrior:
     def shared(self) -> ColorPrior:
         """A prior reading these lattices as they are now, without copying them (for a frozen field: the live map
         keeps splatting into them, which only makes its colours newer; lattices added later are not seen)."""
-        view = ColorPrior(self.voxel_size_m, self.sums.device, self.fused)
+        view = ColorPrior(self.voxel_size_m, self.sums.device, self.backend)
         view.sums = self.sums
         return view
 

@@ -7,27 +7,27 @@ coarse to fine. A corner with integer lattice coordinates (i, j, k) lives at ent
 negative coordinates), so no scene bounds are needed. Corners are ordered `4 * dx + 2 * dy + dz`.
 Valid inputs: finite metres with |x| / finest cell < 2**31 (about 27 000 km at the default sizes).
 
-On the CPU, HashGrid runs the fused numba kernels of `h2viz.mapping.hash_numba` when numba imports
-(kernels="auto"); the torch functions here are the reference, serve CUDA and the gradient w.r.t. points.
+With the "numba" backend, HashGrid runs the fused kernels of `h2viz.mapping.hash_numba` on CPU tensors; the torch
+functions here are the reference, serve CUDA and the gradient w.r.t. points.
 """
 
 from __future__ import annotations
 
 import itertools
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
 from h2viz.errors import ConfigError, H2vizError
-from h2viz.mapping.kernels import kernel_module
+
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend
 
 HASH_PRIMES: tuple[int, int, int] = (1, 2654435761, 805459861)
 """Per-axis multipliers of the spatial hash (x, y, z)."""
-KERNEL_CHOICES: tuple[str, ...] = ("auto", "torch")
-"""auto: fused numba kernels on the CPU when numba imports, else torch; torch: always the torch path."""
 
 
 def level_cell_sizes(n_levels: int = 4, base_cell_m: float = 0.1, scale: float = 2.0) -> list[float]:
@@ -147,9 +147,10 @@ def encode_for_compile(x: Tensor, tables: Tensor, cell_sizes_m: list[float]) -> 
 class HashGrid(nn.Module):
     """Trainable multiresolution hash encoding: points (N,3) in metres -> features (N, L*F).
 
-    kernels="auto" runs CPU calls through the fused numba kernels (forward, and the table gradient)
-    unless x needs a gradient (normals), which the torch path provides; kernels="torch" never uses them.
-    compile=True runs gradient-free calls that the fused kernels do not serve (CUDA, kernels="torch")
+    A backend with tensor kernels (h2viz.mapping.backend, "numba") runs CPU calls through the fused numba kernels
+    (forward, and the table gradient) unless x needs a gradient (normals), which the torch path provides; without
+    one (None, "torch", "cuda") the torch code runs. compile=True runs gradient-free calls that the fused kernels
+    do not serve
     through torch.compile (needs a C++ compiler; compiles for several seconds on the first call).
     """
 
@@ -162,11 +163,11 @@ class HashGrid(nn.Module):
         scale: float = 2.0,
         init_std: float = 1e-4,
         compile: bool = False,
-        kernels: str = "auto",
+        backend: Backend | None = None,
     ) -> None:
         super().__init__()
-        _check_args(n_levels, n_features, log2_size, base_cell_m, scale, kernels)
-        self.kernels = kernels
+        _check_args(n_levels, n_features, log2_size, base_cell_m, scale)
+        self.backend = backend
         self.n_levels = n_levels
         self.n_features = n_features
         self.log2_size = log2_size
@@ -192,9 +193,9 @@ class HashGrid(nn.Module):
         if x.ndim != 2 or x.shape[1] != 3:
             raise H2vizError(f"HashGrid expects points shaped (N,3), got {tuple(x.shape)}; reshape to (-1, 3).")
         x_needs_grad = torch.is_grad_enabled() and x.requires_grad
-        fused = kernel_module("hash_numba") if self.kernels == "auto" and not x_needs_grad else None
-        if fused is not None and x.device.type == "cpu" and self.tables.device.type == "cpu":
-            return fused.fused_encode(x, self.tables, self.cell_sizes_m)
+        kernels = None if self.backend is None or x_needs_grad else self.backend.cpu_kernels(x, self.tables)
+        if kernels is not None:
+            return kernels.hash.fused_encode(x, self.tables, self.cell_sizes_m)
         if torch.is_grad_enabled() and (self.tables.requires_grad or x.requires_grad):
             return encode(x, self.tables, self.cell_sizes_m)  # hand-written backward beats compiled
         return self._encode_no_grad(x, self.tables, self.cell_sizes_m)
@@ -205,10 +206,8 @@ class HashGrid(nn.Module):
         return (rows & (self.table_size - 1)).permute(2, 1, 0).long()
 
 
-def _check_args(n_levels: int, n_features: int, log2_size: int, base_cell_m: float, scale: float, kernels: str) -> None:
+def _check_args(n_levels: int, n_features: int, log2_size: int, base_cell_m: float, scale: float) -> None:
     """Raise ConfigError for hash-grid settings that cannot work."""
-    if kernels not in KERNEL_CHOICES:
-        raise ConfigError(f"mapping.kernels: unknown {kernels!r}; use one of {KERNEL_CHOICES}")
     if n_levels < 1 or n_features < 1:
         raise ConfigError(f"hash grid: hash_levels ({n_levels}) and hash_features ({n_features}) must be >= 1.")
     if log2_size < 1 or n_levels << log2_size >= 1 << 31:

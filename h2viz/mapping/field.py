@@ -6,7 +6,7 @@ octree; the two hash grids and decoders are ordinary modules.
 
 from __future__ import annotations
 
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 import torch
@@ -17,9 +17,11 @@ from h2viz.mapping.bf16 import decode_bf16, use_bf16
 from h2viz.mapping.color_prior import ColorPrior
 from h2viz.mapping.encoding import HashGrid
 from h2viz.mapping.fine_prior import FinePrior
-from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.tiled import tiled
+
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend, TensorKernels
 
 
 def mlp(d_in: int, hidden: int, layers: int, d_out: int) -> nn.Sequential:
@@ -47,19 +49,20 @@ def keep_prior_sign(sdf: Values, prior: Values, band: float) -> Values:
 
 
 class HybridField(nn.Module):
-    """Octree SDF priors plus residual geometry and colour hash-grid fields."""
+    """Octree SDF priors plus residual geometry and colour hash-grid fields; `backend` (None: the torch reference)
+    picks the kernels of the encoders, the prior, the decoders and the colour prior."""
 
-    def __init__(self, cfg: MappingConfig) -> None:
+    def __init__(self, cfg: MappingConfig, backend: Backend | None = None) -> None:
         super().__init__()
         base = cfg.hash_base_resolution_m or cfg.voxel_size_m
         grid = dict(n_levels=cfg.hash_levels, n_features=cfg.hash_features, log2_size=cfg.hash_log2_size)
-        self.geo_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale, kernels=cfg.kernels)
+        self.geo_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale, backend=backend)
         color = dict(
             n_levels=cfg.color_hash_levels or cfg.hash_levels,
             n_features=cfg.hash_features,
             log2_size=cfg.color_hash_log2_size or cfg.hash_log2_size,
         )
-        self.color_grid = HashGrid(**color, base_cell_m=base, scale=cfg.hash_scale, kernels=cfg.kernels)
+        self.color_grid = HashGrid(**color, base_cell_m=base, scale=cfg.hash_scale, backend=backend)
         self.geo_mlp = mlp(self.geo_grid.output_dim, cfg.geo_hidden, cfg.geo_layers, 1)
         self.color_mlp = mlp(self.color_grid.output_dim, cfg.color_hidden, cfg.color_layers, 3)
         with torch.no_grad():  # the residual starts near zero so the priors rule at first
@@ -69,16 +72,16 @@ class HybridField(nn.Module):
                 last.weight.mul_(0.01)
                 last.bias.zero_()
         self.voxel_size_m = cfg.voxel_size_m
-        self.kernels = cfg.kernels
+        self.backend = backend
         self.color_bf16 = use_bf16(cfg.color_precision)  # applies on the CPU only
         self.use_residual = True
         self.residual_bound = float(cfg.residual_bound) if cfg.priors else 0.0  # tr units, 0 = unbounded
         # Corners without a prior start as free space at the truncation distance: a zero would put a
         # surface on every corner whose projection failed.
         self.unset_prior = 1.0 if cfg.priors else 0.0
-        self.color_prior = ColorPrior(cfg.voxel_size_m, fused=cfg.kernels == "auto") if cfg.color_prior else None
+        self.color_prior = ColorPrior(cfg.voxel_size_m, backend=backend) if cfg.color_prior else None
         fine = cfg.fine_priors and cfg.priors
-        self.fine_prior = FinePrior(cfg.voxel_size_m, cfg.truncation_m, fused=cfg.kernels == "auto") if fine else None
+        self.fine_prior = FinePrior(cfg.voxel_size_m, cfg.truncation_m, backend=backend) if fine else None
         self.octree: VoxelOctree | None = None  # where the colour prior looks points up (set by sync)
         self.priors = torch.zeros(0)  # (C,) corner SDF in tr units, grows with the octree
         self.corner_ids = torch.zeros(0, 8, dtype=torch.long)  # (V,8)
@@ -118,10 +121,15 @@ class HybridField(nn.Module):
 
     def corner_prior(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
         """Trilinear interpolation of the 8 corner priors of each point's voxel: (N,3), (N,) -> (N,)."""
-        fused = kernel_module("prior_numba") if self.kernels == "auto" else None
-        if fused is not None and points.device.type == "cpu" and not (torch.is_grad_enabled() and points.requires_grad):
-            return fused.fused_prior(self.priors, points, voxel, self.voxel_origin, self.corner_ids, self.voxel_size_m)
+        k = self._kernels(points)
+        if k is not None and not (torch.is_grad_enabled() and points.requires_grad):
+            prior = k.prior.fused_prior
+            return prior(self.priors, points, voxel, self.voxel_origin, self.corner_ids, self.voxel_size_m)
         return self._trilinear(points, voxel, self.priors[self.corner_ids[voxel]])
+
+    def _kernels(self, *tensors: torch.Tensor) -> TensorKernels | None:
+        """The backend's tensor kernels when they can read these tensors, else None (the torch code runs)."""
+        return None if self.backend is None else self.backend.cpu_kernels(*tensors)
 
     def _trilinear(self, points: torch.Tensor, voxel: torch.Tensor, vals: torch.Tensor) -> torch.Tensor:
         """Blend corner values vals (N,8) (corner order x,y,z bits 4,2,1) at points (N,3) in voxels (N,)."""
@@ -146,9 +154,9 @@ class HybridField(nn.Module):
     def _decode(self, net: nn.Sequential, features: torch.Tensor) -> torch.Tensor:
         """net(features): the fused CPU kernels for one-hidden-layer decoders (h2viz.mapping.decoder_numba; the
         two-layer colour decoder is faster as torch's matrix products), else torch tile by tile."""
-        fused = kernel_module("decoder_numba") if self.kernels == "auto" and features.device.type == "cpu" else None
-        if fused is not None and fused.is_supported(net) and features.dtype == torch.float32:
-            return fused.fused_decoder(net, features)
+        k = self._kernels(features)
+        if k is not None and k.decoder.is_supported(net) and features.dtype == torch.float32:
+            return k.decoder.fused_decoder(net, features)
         return tiled(net, features)
 
     def bound(self, raw: torch.Tensor) -> torch.Tensor:

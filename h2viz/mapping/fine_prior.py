@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from h2viz.geometry import invert_se3
-from h2viz.mapping.kernels import kernel_module
+from h2viz.mapping.backend import Backend
 
 SUB = 8
 """Lattice cells per voxel edge (SUB + 1 points per edge, 1.25 cm apart at 10 cm voxels)."""
@@ -29,18 +29,21 @@ _OFFSETS = torch.tensor([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz i
 
 class FinePrior:
     """Per-voxel lattices (V, (SUB+1)^3, 2) of summed truncated SDF (tr units) and weight (frames).
-    `fused` runs the numba kernels (h2viz.mapping.fine_prior_numba) on the CPU; the torch code is their reference."""
+    A backend with kernels runs the numba ones (h2viz.mapping.fine_prior_numba) on host lattices; the torch code is
+    their reference (and runs without a backend)."""
 
-    def __init__(self, voxel_size_m: float, truncation_m: float, fused: bool = True) -> None:
+    def __init__(self, voxel_size_m: float, truncation_m: float, backend: Backend | None = None) -> None:
         self.voxel_size_m = float(voxel_size_m)
         self.truncation_m = float(truncation_m)
         self.n = SUB + 1
         self.state = torch.zeros(0, self.n**3, 2)  # (V, P, 2), a view of the first V of _storage
         self._storage: torch.Tensor | None = None
-        self.fused = fused
+        self.backend = backend
 
     def _kernels(self) -> object | None:
-        return kernel_module("fine_prior_numba") if self.fused and self.state.device.type == "cpu" else None
+        """The compiled module when the backend has one and the lattices live on the host, else None."""
+        kernels = None if self.backend is None else self.backend.array_kernels
+        return kernels.fine_prior if kernels is not None and self.state.device.type == "cpu" else None
 
     # ------------------------------------------------------------------------------------------- storage
     def grow(self, n_voxels: int) -> None:
@@ -59,7 +62,7 @@ class FinePrior:
 
     def shared(self) -> FinePrior:
         """A prior reading these lattices as they are now, without copying them (for a frozen field)."""
-        view = FinePrior(self.voxel_size_m, self.truncation_m, self.fused)
+        view = FinePrior(self.voxel_size_m, self.truncation_m, self.backend)
         view.state = self.state
         return view
 
@@ -133,8 +136,7 @@ class FinePrior:
         """At points (N,3) in (or on the faces of) voxels (N,) with origins voxel_origin (V,3): the fused lattice
         points' part of the trilinear blend (N,) (tr units) and their share of the weights (N,) in [0, 1] (0 where
         no frame reached the lattice)."""
-        kernels = self._kernels()
-        if kernels is None or points.device.type != "cpu":
+        if self._kernels() is None or points.device.type != "cpu":
             return self.blend_reference(voxel_origin, points, voxel)
         value, cover = self.blend_numpy(voxel_origin.numpy(), points.detach().numpy(), voxel.numpy())
         return torch.from_numpy(value), torch.from_numpy(cover)
@@ -143,7 +145,7 @@ class FinePrior:
         self, voxel_origin: np.ndarray, points: np.ndarray, voxel: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """`blend` on CPU NumPy arrays (the meshing thread's), through the numba kernel when it imports."""
-        kernels = kernel_module("fine_prior_numba") if self.fused else None
+        kernels = self._kernels()
         if kernels is None:
             value_t, cover_t = self.blend_reference(
                 torch.from_numpy(voxel_origin), torch.from_numpy(points), torch.from_numpy(voxel)

@@ -13,8 +13,8 @@ import torch
 import trimesh
 
 from h2viz.config import MappingConfig
+from h2viz.mapping.backend import Backend, resolve_backend
 from h2viz.mapping.field import HybridField
-from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.keyframes import KeyframeSet
 from h2viz.mapping.losses import check_color_settings, color_error, mapping_losses
 from h2viz.mapping.mesh_job import FrozenField, MeshJob
@@ -39,13 +39,6 @@ COLOR_POINTS = 160_000
 pixels a 1.25 cm lattice cell up to 4 m away at 70 deg, for ~15 ms a frame instead of ~30."""
 
 
-def pick_device(name: str) -> torch.device:
-    """'auto' -> CUDA when present, else CPU."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
 class Mapper:
     """Octree SDF priors + hash-grid residual field, optimised frame by frame with coverage keyframes."""
 
@@ -55,7 +48,8 @@ class Mapper:
         self.surface_color = cfg.color_supervision == "surface"  # colour learned on a batch of its own
         self.volume_color = cfg.color_supervision == "volume"  # colour learned in the geometry batch
         self.geometry_cfg = cfg if self.volume_color else replace(cfg, w_rgb=0.0)  # the geometry batch's losses
-        self.device = pick_device(cfg.device)
+        self.backend: Backend = resolve_backend(cfg.kernels, cfg.device)  # chosen here, once, for every stage
+        self.device = self.backend.device
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
@@ -63,8 +57,8 @@ class Mapper:
         self.voxel_size_m = cfg.voxel_size_m
         self.octree = VoxelOctree(cfg.voxel_size_m, cfg.min_points_per_voxel, cfg.expansion)
         self.priors = PriorInitializer(cfg.truncation_m, cfg.priors)
-        self.observed = ObservedCells(cfg.voxel_size_m)  # where depth was measured, for meshing
-        self.field = HybridField(cfg).to(self.device)
+        self.observed = ObservedCells(cfg.voxel_size_m, self.backend)  # where depth was measured, for meshing
+        self.field = HybridField(cfg, self.backend).to(self.device)
         self.field.priors = self.field.priors.to(self.device).requires_grad_(cfg.priors)
         self.optim = self._make_optimiser()
         self.keyframes = KeyframeSet(
@@ -72,7 +66,7 @@ class Mapper:
         )
         self.keyframe_rays: list[FrameRays] = []
         self.thumbnails: list[np.ndarray] = []
-        self.mesher = ChunkedMesher(cfg.voxel_size_m, cfg.mesh_resolution, cfg.chunk_voxels)
+        self.mesher = ChunkedMesher(cfg.voxel_size_m, cfg.mesh_resolution, cfg.chunk_voxels, self.backend)
         self.touched = np.zeros(0, dtype=bool)  # (V,) voxels allocated or observed since the last mesh job
         self.trajectory: list[np.ndarray] = []
         self.frames_done = 0
@@ -86,12 +80,12 @@ class Mapper:
         """Adam for the growing corner priors (ours) and for hash tables and decoders (torch's fused one:
         a dense step over both 2^19-entry tables costs ~4 ms on CPU, less than a lazy update of the few
         hundred thousand rows a step touches, whose random accesses cost ~15x more per row)."""
-        opt = GrowingAdam(self.cfg.lr, fused=self.cfg.kernels == "auto")
+        opt = GrowingAdam(self.cfg.lr, backend=self.backend)
         if self.cfg.priors:
             opt.add("priors", lambda: self.field.priors, sparse=True)  # only corners with gradient move
-        fused = {"fused": True} if self.device.type in ("cpu", "cuda") else {}
+        one_pass = {"fused": True} if self.device.type in ("cpu", "cuda") else {}  # torch's single-kernel Adam
         self.net_optim = torch.optim.Adam(
-            self.field.parameters(), lr=self.cfg.lr, betas=(0.9, 0.99), eps=1e-15, **fused
+            self.field.parameters(), lr=self.cfg.lr, betas=(0.9, 0.99), eps=1e-15, **one_pass
         )
         return opt
 
@@ -101,7 +95,7 @@ class Mapper:
         start = time.perf_counter()
         timer = StageTimer()
         with timer("allocation"):
-            rays, points = FrameRays.with_points(frame, self.device)  # valid depth -> rays, world points (P,3)
+            rays, points = FrameRays.with_points(frame, self.backend)  # valid depth -> rays, world points (P,3)
             alloc = self.octree.allocate(points)  # voxels with > 10 points (+ expanded neighbours)
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
             self._init_priors(frame)  # project new corners into the depth image
@@ -178,7 +172,7 @@ class Mapper:
 
     def _batch(self, frames: list[FrameRays]) -> RayBatch:
         n = max(1, self.cfg.rays_per_iter // len(frames))
-        return sample_frames(frames, n, self.rng, fused=self.cfg.kernels == "auto")
+        return sample_frames(frames, n, self.rng, self.backend)
 
     def _optimise(self, frames: list[FrameRays], timer: StageTimer) -> tuple[int, dict[str, float]]:
         """Up to max_iters Adam steps; stop when the loss exceeds its running mean twice in a row."""
@@ -202,11 +196,9 @@ class Mapper:
         batch = self._batch(frames)
         if c.free_samples < 0:  # every 1 cm of every allocated voxel the ray crosses
             far = batch.depth + c.band_behind_m
-            return sample_rays(self.octree, batch.origins, batch.dirs, far, c.step_m, True), batch
+            return sample_rays(self.octree, batch.origins, batch.dirs, far, c.step_m, True, backend=self.backend), batch
         layout = BandLayout(c.band_m, c.truncation_m, c.step_m, c.band_front_step_m, c.free_samples, c.band_behind_m)
-        samples = band_samples(
-            self.octree, batch.origins, batch.dirs, batch.depth, layout, self.rng, fused=c.kernels == "auto"
-        )
+        samples = band_samples(self.octree, batch.origins, batch.dirs, batch.depth, layout, self.rng, self.backend)
         return samples, batch
 
     def _step(self, frames: list[FrameRays], timer: StageTimer) -> dict[str, torch.Tensor]:
@@ -235,20 +227,20 @@ class Mapper:
         """The colour loss of a batch of its own: the colour field at each ray's measured surface point (camera +
         depth along the z-normalised ray) against the pixel's colour; gradients reach only the colour branch."""
         n = max(1, self.cfg.color_rays_per_iter // len(frames))
-        batch = sample_frames(frames, n, self.rng, fused=self.cfg.kernels == "auto")
+        batch = sample_frames(frames, n, self.rng, self.backend)
         points = batch.origins + batch.dirs * batch.depth[:, None]  # (R,3)
         rgb = self.field.color(points)  # (R,3)
         return self.cfg.w_rgb * color_error(rgb, batch.rgb, self.cfg.rgb_loss == "l2")
 
     def _losses(self, samples: Samples, sdf: torch.Tensor, batch: RayBatch) -> dict[str, torch.Tensor]:
         """Render the batch and take the four losses (colour evaluated only where the weights matter, not at all when
-        colour has a batch of its own): the fused kernels on the CPU (h2viz.mapping.loss_numba), else the torch
+        colour has a batch of its own): the backend's fused kernels (h2viz.mapping.loss_numba), else the torch
         functions they reproduce."""
         cfg = self.geometry_cfg
         color = self.field.color if self.volume_color else self._no_color
-        fused = kernel_module("loss_numba") if cfg.kernels == "auto" and self.device.type == "cpu" else None
-        if fused is not None:
-            return fused.mapping_losses(samples, sdf, color, batch.rgb, batch.depth, cfg)
+        kernels = self.backend.cpu_kernels(sdf)
+        if kernels is not None:
+            return kernels.loss.mapping_losses(samples, sdf, color, batch.rgb, batch.depth, cfg)
         weights = render_weights(samples, sdf, cfg.truncation_m, cfg.render_temperature)  # (S,)
         live = live_samples(samples, weights)  # (S',)
         render = composite(samples, weights, color(samples.points[live]), live)  # colour (S',3) of the live samples
@@ -324,7 +316,7 @@ class Mapper:
             meshable = np.flatnonzero(initialised)  # (V',) voxel ids
         dirty = self.touched[meshable] & (not whole)
         band = self.cfg.mesh_prior_band if self.cfg.priors else 0.0
-        field = FrozenField(self.field, self.cfg.truncation_m, band)
+        field = FrozenField(self.field, self.cfg.truncation_m, band, self.backend)
         coords = self.octree.voxel_coords()[meshable]
         return MeshJob(
             mesher, coords, meshable, dirty, field, self.version, self.frames_done, refresh_s, whole, support
@@ -348,7 +340,7 @@ class Mapper:
         if resolution is None or int(resolution) == self.mesher.resolution:
             self.update_mesh()
             return merge_chunks(self.mesher.chunks)
-        mesher = ChunkedMesher(self.cfg.voxel_size_m, int(resolution), self.cfg.chunk_voxels)
+        mesher = ChunkedMesher(self.cfg.voxel_size_m, int(resolution), self.cfg.chunk_voxels, self.backend)
         return merge_chunks(self._frozen_job(mesher, 0.0, whole=True).run())
 
     def export_mesh(self, path: Path) -> None:
@@ -373,11 +365,11 @@ class Mapper:
         params = RenderParams.from_config(self.cfg, self.max_depth_m)
         trusted = None  # voxels whose 8 corners all hold a measured prior: there the priors locate the surface
         if self.cfg.priors and self.field.fine_prior is None:  # the corner priors miss what only the fine one holds
-            trusted = torch.ones(self.octree.n_voxels, dtype=torch.bool)
+            trusted = torch.ones(self.octree.n_voxels, dtype=torch.bool)  # (V,) host-side: the walks read it
             trusted[torch.from_numpy(self.priors.pending)] = False
         support = self.drawable() if params.surface else None
         args = (self.field, self.octree, K, T_world_camera, height, width, mode, params, trusted)
-        return render_image(*args, support=support)
+        return render_image(*args, support=support, backend=self.backend)
 
     def drawable(self) -> Callable[[np.ndarray], np.ndarray]:
         """Which world points (N,3) the mesher would draw a face at, (N,) bool: near observed depth (strictly in
@@ -389,7 +381,7 @@ class Mapper:
         octree = self.octree
 
         def in_initialised(points: np.ndarray) -> np.ndarray:
-            vid = locate(octree, torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))).numpy()
+            vid = locate(octree, torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))).cpu().numpy()
             return (vid >= 0) & initialised[np.maximum(vid, 0)]
 
         return in_initialised

@@ -12,12 +12,12 @@ import functools
 import itertools
 from collections.abc import Iterator
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 from skimage.measure import marching_cubes
 
 from h2viz.geometry import drop_unused_vertices
-from h2viz.mapping.kernels import kernel_module
 
 SNAP = 1e-4  # crossings closer than this (in edge lengths) to a lattice point are placed on it
 
@@ -41,12 +41,16 @@ def corner_slices(shape: tuple[int, ...]) -> Iterator[tuple[slice, ...]]:
 
 
 def chunk_lattice(
-    key: tuple[int, int, int], voxels: np.ndarray, resolution: int, flags: np.ndarray | None = None
+    key: tuple[int, int, int],
+    voxels: np.ndarray,
+    resolution: int,
+    flags: np.ndarray | None = None,
+    fast: ModuleType | None = None,
 ) -> ChunkLattice:
     """Cells and needed lattice points of one chunk's allocated voxels (V,3) (global voxel coords); `flags`
-    (V,) marks voxels whose points are reported in `point_flagged`."""
+    (V,) marks voxels whose points are reported in `point_flagged`. `fast`: the compiled kernels
+    (h2viz.mapping.marching_numba, a backend's `array_kernels.marching`), None for this NumPy code."""
     lo = voxels.min(axis=0)
-    fast = kernel_module("marching_numba")
     if fast is not None:
         marks = np.zeros(len(voxels), dtype=bool) if flags is None else flags
         cells, points, voxel, flagged = fast.lattice_arrays(voxels - lo, voxels.max(axis=0) - lo + 1, resolution, marks)
@@ -155,11 +159,12 @@ def march(lat: ChunkLattice, values: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return verts, faces.astype(np.int64), volume
 
 
-def surface_mesh(lat: ChunkLattice, values: np.ndarray, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+def surface_mesh(
+    lat: ChunkLattice, values: np.ndarray, spacing_m: float, fast: ModuleType | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Welded world vertices (N,3) float32 and faces (M,3) int64 of the level-0 surface of a lattice's values
-    (N,): compiled (h2viz.mapping.marching_numba) when numba is available, else scikit-image's marching cubes
-    welded by position. Both place every crossing at the same bits."""
-    fast = kernel_module("marching_numba")
+    (N,): compiled with `fast` (h2viz.mapping.marching_numba), else scikit-image's marching cubes welded by
+    position. Both place every crossing at the same bits."""
     if fast is None:
         marched = march(lat, values)
         if marched is None:

@@ -10,15 +10,17 @@ from __future__ import annotations
 import copy
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from h2viz.mapping.decoder_numba import decode_range, decoder_weights, is_supported
 from h2viz.mapping.field import HybridField, keep_prior_sign
 from h2viz.mapping.meshing import ChunkedMesher, ChunkKey
-from h2viz.mapping.prior_numba import blend_range
 from h2viz.mapping.support import ObservedSupport
+
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend
 from h2viz.types import MeshChunk
 
 FIELD_BATCH = 1 << 16  # points per network call (the activations stay in cache)
@@ -27,12 +29,15 @@ FIELD_BATCH = 1 << 16  # points per network call (the activations stay in cache)
 class FrozenField:
     """A copy of a HybridField's parameters at one moment; evaluating it never touches the live field.
 
-    sdf = trilinear(corner priors) + MLP(hash(x)), as HybridField.sdf. The prior and, for the default decoder
-    (one hidden ReLU layer), the decoder run in compiled single-threaded loops over the points: the meshing
-    thread leaves the cores to mapping and builds no large intermediate arrays.
+    sdf = trilinear(corner priors) + MLP(hash(x)), as HybridField.sdf. With the backend's array kernels the prior
+    and, for the default decoder (one hidden ReLU layer) on CPU features, the decoder run in compiled
+    single-threaded loops over the points: the meshing thread leaves the cores to mapping and builds no large
+    intermediate arrays. Without them (None, "torch"), and for features on the GPU, the field's torch code runs.
     """
 
-    def __init__(self, field: HybridField, truncation_m: float, prior_band: float = 0.0) -> None:
+    def __init__(
+        self, field: HybridField, truncation_m: float, prior_band: float = 0.0, backend: Backend | None = None
+    ) -> None:
         prior, fine, octree = field.color_prior, field.fine_prior, field.octree
         field.color_prior, field.fine_prior, field.octree = None, None, None  # shared, not copied (~18 kB a voxel)
         try:
@@ -49,18 +54,28 @@ class FrozenField:
         self.truncation_m = float(truncation_m)
         self.prior_band = float(prior_band)  # tr units; 0 = surfaces wherever the residual puts them
         self.device = frozen.priors.device
-        self._priors = frozen.priors.cpu().numpy().astype(np.float32)  # (C,)
-        self._corner_ids = frozen.corner_ids.cpu().numpy()  # (V,8) int64
-        self._origin = frozen.voxel_origin.cpu().numpy().astype(np.float32)  # (V,3) metres
-        self._decoder = decoder_weights(frozen.geo_mlp) if is_supported(frozen.geo_mlp) else None
+        self.kernels = None if backend is None else backend.array_kernels
+        if self.kernels is not None:
+            self._priors = frozen.priors.cpu().numpy().astype(np.float32)  # (C,)
+            self._corner_ids = frozen.corner_ids.cpu().numpy()  # (V,8) int64
+            self._origin = frozen.voxel_origin.cpu().numpy().astype(np.float32)  # (V,3) metres
+        on_cpu = self.device.type == "cpu"
+        decoder = self.kernels.decoder if self.kernels is not None and on_cpu else None
+        supported = decoder is not None and decoder.is_supported(frozen.geo_mlp)
+        self._decoder = decoder.decoder_weights(frozen.geo_mlp) if decoder is not None and supported else None
 
     def prior(self, points: np.ndarray, voxel_ids: np.ndarray) -> np.ndarray:
         """Prior SDF in truncation units (N,) float32 at points (N,3) in (or on the faces of) voxels (N,)."""
-        out = np.empty(len(points), dtype=np.float32)
         pts = np.ascontiguousarray(points, dtype=np.float32)
         vox = np.ascontiguousarray(voxel_ids, dtype=np.int64)
+        if self.kernels is None:
+            p, v = torch.from_numpy(pts).to(self.device), torch.from_numpy(vox).to(self.device)
+            with torch.no_grad():
+                return self.field.prior_sdf(p, v).cpu().numpy().astype(np.float32)
+        out = np.empty(len(points), dtype=np.float32)
         inv_vs = 1.0 / self.field.voxel_size_m
-        blend_range(pts, vox, self._origin, self._corner_ids, self._priors, inv_vs, 0, len(pts), out)
+        blend = self.kernels.prior.blend_range
+        blend(pts, vox, self._origin, self._corner_ids, self._priors, inv_vs, 0, len(pts), out)
         if self.field.fine_prior is not None:
             value, cover = self.field.fine_prior.blend_numpy(self._origin, pts, vox)
             out = value + (np.float32(1.0) - cover) * out
@@ -76,11 +91,12 @@ class FrozenField:
             for i in range(0, len(points), FIELD_BATCH):
                 p = torch.from_numpy(np.ascontiguousarray(points[i : i + FIELD_BATCH], np.float32)).to(self.device)
                 feats = self.field.geo_grid(p)  # (n, L*F)
-                if self._decoder is None:
+                if self._decoder is None or self.kernels is None:
                     residual = self.field.geo_mlp(feats).cpu().numpy()
-                else:  # single-threaded: the cores are mapping's
+                else:  # single-threaded: the cores are mapping's; CPU features (a decoder only on the CPU)
                     residual = np.empty((feats.shape[0], 1), np.float32)
-                    decode_range(feats.contiguous().numpy(), *self._decoder, 0, feats.shape[0], residual)
+                    decode = self.kernels.decoder.decode_range
+                    decode(feats.contiguous().numpy(), *self._decoder, 0, feats.shape[0], residual)
                 out[i : i + FIELD_BATCH] += self.field.bound(torch.from_numpy(residual))[:, 0].numpy()
         if self.prior_band > 0:
             out = keep_prior_sign(out, prior, self.prior_band)

@@ -7,11 +7,11 @@ import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from enum import Enum
+from types import ModuleType
 
 import numpy as np
 
 from h2viz.geometry import drop_unused_vertices
-from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.lattice_values import ColorFn, FaceValues, MeshingError, SdfFn, call_field
 from h2viz.mapping.marching import ChunkLattice, surface_mesh
 from h2viz.types import MeshChunk
@@ -123,9 +123,12 @@ class Update:
             yield batch
 
 
-def surface(lat: ChunkLattice, values: np.ndarray, spacing_m: float) -> tuple[ChunkKey, np.ndarray, np.ndarray] | None:
-    """(key, welded world vertices (N,3), faces (M,3)) of one chunk's lattice values, or None when empty."""
-    vertices, faces = surface_mesh(lat, values, spacing_m)
+def surface(
+    lat: ChunkLattice, values: np.ndarray, spacing_m: float, fast: ModuleType | None = None
+) -> tuple[ChunkKey, np.ndarray, np.ndarray] | None:
+    """(key, welded world vertices (N,3), faces (M,3)) of one chunk's lattice values, or None when empty; `fast`
+    as in `surface_mesh`."""
+    vertices, faces = surface_mesh(lat, values, spacing_m, fast)
     return (lat.key, vertices, faces) if len(faces) else None
 
 
@@ -158,12 +161,14 @@ def coloured(
     color_fn: ColorFn,
     version: int,
     previous: dict[ChunkKey, MeshChunk],
+    fast: ModuleType | None = None,
 ) -> dict[ChunkKey, MeshChunk]:
     """MeshChunks of the surfaces, coloured by one color_fn call. A vertex at exactly the position it had in
-    the chunk's `previous` mesh keeps its colour (pass only the chunks whose colours may be kept)."""
+    the chunk's `previous` mesh keeps its colour (pass only the chunks whose colours may be kept); `fast` as in
+    `surface_mesh`."""
     if not surfaces:
         return {}
-    kept = [_same_vertex(vertices, previous[key]) if key in previous else None for key, vertices, _ in surfaces]
+    kept = [_same_vertex(v, previous[key], fast) if key in previous else None for key, v, _ in surfaces]
     ask = [np.ones(len(v), bool) if k is None else k < 0 for (_, v, _), k in zip(surfaces, kept, strict=True)]
     points = np.concatenate([v[a] for (_, v, _), a in zip(surfaces, ask, strict=True)])
     colors = call_field(color_fn, "color_fn", 3, points) if len(points) else np.zeros((0, 3), np.uint8)
@@ -180,9 +185,8 @@ def coloured(
     return out
 
 
-def _same_vertex(vertices: np.ndarray, before: MeshChunk) -> np.ndarray:
+def _same_vertex(vertices: np.ndarray, before: MeshChunk, fast: ModuleType | None = None) -> np.ndarray:
     """Index (N,) of each vertex (N,3) float32 in `before.vertices` when bit-identical there, else -1."""
-    fast = kernel_module("marching_numba")
     if fast is not None:
         return fast.match_vertices(before.vertices, vertices)
     n_old = len(before.vertices)

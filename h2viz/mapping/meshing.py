@@ -16,6 +16,7 @@ import itertools
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
@@ -40,6 +41,9 @@ from h2viz.mapping.mesh_passes import (
 )
 from h2viz.types import MeshChunk
 
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend
+
 __all__ = ["ChunkKey", "ChunkedMesher", "ColorFn", "MeshingError", "SdfFn", "export_mesh", "merge_chunks"]
 
 EXPORT_SUFFIXES = (".ply", ".glb", ".obj")
@@ -59,13 +63,17 @@ def _as_voxels(voxel_coords: np.ndarray) -> np.ndarray:
 class ChunkedMesher:
     """Per-chunk marching-cubes meshes of the allocated leaf voxels, re-meshing only what it is asked to."""
 
-    def __init__(self, voxel_size_m: float, resolution: int = 8, chunk_voxels: int = 8) -> None:
+    def __init__(
+        self, voxel_size_m: float, resolution: int = 8, chunk_voxels: int = 8, backend: Backend | None = None
+    ) -> None:
         if not (np.isfinite(voxel_size_m) and voxel_size_m > 0):
             raise ConfigError(f"meshing: voxel_size_m must be a positive number of metres, got {voxel_size_m}")
         if int(chunk_voxels) < 1:
             raise ConfigError(f"meshing: chunk_voxels must be >= 1, got {chunk_voxels}")
         self._voxel_size_m = float(voxel_size_m)
         self._chunk_voxels = int(chunk_voxels)
+        arrays = None if backend is None else backend.array_kernels
+        self._fast = None if arrays is None else arrays.marching  # compiled marching (None: the NumPy code)
         self._chunks: dict[ChunkKey, MeshChunk] = {}  # replaced whole, never changed in place
         self._meshed: dict[ChunkKey, Meshed] = {}  # every chunk with voxels, surface or not; same rule
         self._values: dict[ChunkKey, ChunkValues] = {}  # lattice values per chunk (used by `update` only)
@@ -212,20 +220,21 @@ class ChunkedMesher:
     def _remesh(self, items: list[Item], job: Update, on_pass: Callable | None, required: bool) -> None:
         """Sample, march, weld and colour a pass of chunks, then swap in the new chunk and bookkeeping dicts."""
         res, keys = job.resolution, [k for k, _ in items]
-        lattices = [chunk_lattice(k, job.groups[k].coords, res, job.groups[k].flags) for k in keys]
+        lattices = [chunk_lattice(k, job.groups[k].coords, res, job.groups[k].flags, self._fast) for k in keys]
         need = [_need(lat, mode) for lat, (_, mode) in zip(lattices, items, strict=True)]
         caches = [self._cache(lat, res) for lat in lattices]
         ids = [job.groups[k].ids for k in keys]
         spacing_m, chunk_cells = self._voxel_size_m / res, self._chunk_voxels * res
         outside = lambda points: self._held_by_others(points, set(keys), chunk_cells)  # noqa: E731
         values = sample_lattices(lattices, ids, need, caches, spacing_m, job.sdf_fn, chunk_cells, job.faces, outside)
-        surfaces = [s for lat, v in zip(lattices, values, strict=True) if (s := surface(lat, v, spacing_m))]
+        surfaces = [s for lat, v in zip(lattices, values, strict=True) if (s := surface(lat, v, spacing_m, self._fast))]
         if job.keep_fn is not None:
             surfaces = kept_faces(surfaces, job.keep_fn)
         replaced = set(keys)
         chunks = {k: c for k, c in self._chunks.items() if k not in replaced}
         keep = {k: self._chunks[k] for k, mode in items if mode is not Eval.WHOLE and k in self._chunks}
-        chunks.update(coloured(surfaces, job.color_fn, job.version, keep))  # unmoved vertices keep their colour
+        # unmoved vertices keep their colour
+        chunks.update(coloured(surfaces, job.color_fn, job.version, keep, self._fast))
         meshed = dict(self._meshed)
         for key, mode in items:
             before = self._meshed.get(key, NEVER)

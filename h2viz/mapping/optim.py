@@ -9,10 +9,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 
-from h2viz.mapping.kernels import kernel_module
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend
 
 
 @dataclass
@@ -29,10 +31,14 @@ class GrowingAdam:
     """Adam (betas 0.9/0.99, eps 1e-15) over tensors looked up by name each step."""
 
     def __init__(
-        self, lr: float, betas: tuple[float, float] = (0.9, 0.99), eps: float = 1e-15, fused: bool = True
+        self,
+        lr: float,
+        betas: tuple[float, float] = (0.9, 0.99),
+        eps: float = 1e-15,
+        backend: Backend | None = None,
     ) -> None:
         self.lr, self.betas, self.eps = lr, betas, eps
-        self.fused = fused  # row-sparse steps through the compiled kernel on the CPU (else the torch code)
+        self.backend = backend  # its tensor kernels run the row-sparse steps (None: the torch code)
         self.slots: dict[str, _Slot] = {}
 
     def add(self, name: str, get: Callable[[], torch.Tensor], sparse: bool = False) -> None:
@@ -81,14 +87,14 @@ class GrowingAdam:
         self, p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor, steps: torch.Tensor
     ) -> bool:
         """The row-sparse step through the compiled kernel (h2viz.mapping.optim_numba) when it applies: contiguous
-        float32 CPU tensors and numba installed. False when it does not (the torch code runs instead)."""
-        kernels = kernel_module("optim_numba") if self.fused else None
+        float32 CPU tensors and a backend with tensor kernels. False when it does not (the torch code runs instead)."""
         tensors = (p, g, m, v, steps)
-        if kernels is None or any(t.device.type != "cpu" or t.dtype != torch.float32 for t in tensors):
+        kernels = None if self.backend is None else self.backend.cpu_kernels(*tensors)
+        if kernels is None or any(t.dtype != torch.float32 for t in tensors):
             return False
         if not all(t.is_contiguous() for t in tensors):
             return False
-        kernels.sparse_adam(*(t.detach().numpy() for t in tensors), self.lr, *self.betas, self.eps)
+        kernels.optim.sparse_adam(*(t.detach().numpy() for t in tensors), self.lr, *self.betas, self.eps)
         return True
 
     def _update(

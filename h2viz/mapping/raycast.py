@@ -5,16 +5,19 @@
 bit for bit); voxels whose 8 corners hold measured priors point at the first surface through the trilinear
 prior, other voxels are searched coarse then fine with the full SDF, and evaluation spreads from there only
 while the SDF stays near zero (surface.py). The kept samples get exactly the paper's weights
-(`render_weights`); the skipped ones would weigh less than `surface.NEGLIGIBLE_WEIGHT`, as long as the hash-grid
+(`render_weights`); the skipped ones would weigh less than `NEGLIGIBLE_WEIGHT`, as long as the hash-grid
 residual does not add surfaces where the measured priors see none. `render_image_reference` is the exhaustive
-render, kept as the baseline the fast path is checked against. Depth is along the camera axis (z-normalised
+render, kept as the baseline the fast path is checked against, and what a backend without array kernels (numba
+absent, or `mapping.kernels: torch`) runs. Depth is along the camera axis (z-normalised
 rays); rays whose weights sum below HIT_WEIGHT render empty (0) in both.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -32,13 +35,36 @@ from h2viz.mapping.rendering import (
     surface_crossings,
 )
 from h2viz.mapping.sampling import Samples, sample_rays
-from h2viz.mapping.surface import MLP_ROWS, SearchParams, prior_samples, weighted_samples
+
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend
 
 MODES = ("rgb", "depth", "normal", "prior")
+NEGLIGIBLE_WEIGHT = 1e-3
+"""Rendering weights (peak 0.25) below this are treated as zero when choosing what to evaluate."""
+MLP_ROWS = 32768
+"""Field evaluations that build autograd graphs (normals) run on this many points at a time, so that their
+intermediate tensors stay in the CPU's cache."""
 CHUNK_RAYS = 65536
 HIT_WEIGHT = 1e-2
 """A ray shows a surface when its rendering weights sum above this (a crossing sums to ~0.25 or more); rays
 that only pass near surfaces, with tiny weights and meaningless depths, render empty."""
+
+
+@dataclass(frozen=True)
+class SearchParams:
+    """How the fast render walks and searches the lattice (surface.py)."""
+
+    step_m: float
+    truncation_m: float
+    temperature: float
+    after_m: float  # the walk goes this far beyond the first prior crossing
+    wave: int = 8  # probes per ray and round
+
+    @property
+    def theta(self) -> float:
+        """|SDF| (truncation units) beyond which a sample's weight is negligible."""
+        return self.temperature * math.log(1.0 / NEGLIGIBLE_WEIGHT)
 
 
 @dataclass(frozen=True)
@@ -212,12 +238,18 @@ def render_rays(
     params: RenderParams,
     trusted: torch.Tensor | None,
     support: Support | None = None,
+    backend: Backend | None = None,
 ) -> torch.Tensor:
-    """Render R rays (origins, dirs (R,3)), evaluating the networks only where weight can be."""
+    """Render R rays (origins, dirs (R,3)), evaluating the networks only where weight can be (the backend's
+    array kernels run the search; without them, `render_rays_reference`)."""
+    kernels = None if backend is None else backend.array_kernels
+    if kernels is None:
+        return render_rays_reference(field, octree, origins, dirs, mode, params, trusted, support, backend)
     if mode == "prior":
-        samples, sdf = prior_samples(octree, field, origins, dirs, params.t_far, params.search())
+        samples, sdf = kernels.search.prior_samples(octree, field, origins, dirs, params.t_far, params.search())
     else:
-        samples, sdf = weighted_samples(field, octree, origins, dirs, params.t_far, trusted, params.search())
+        search = kernels.search.weighted_samples
+        samples, sdf = search(field, octree, origins, dirs, params.t_far, trusted, params.search())
     return shade(field, octree, origins, dirs, samples, sdf, mode, params, support)
 
 
@@ -231,10 +263,11 @@ def render_rays_reference(
     params: RenderParams,
     trusted: torch.Tensor | None = None,
     support: Support | None = None,
+    backend: Backend | None = None,
 ) -> torch.Tensor:
     """Render R rays from every sample of every allocated voxel up to t_far (band-filtered by the prior)."""
     t_far = torch.full((origins.shape[0],), params.t_far, device=origins.device)
-    samples = sample_rays(octree, origins, dirs, t_far, params.step_m, False)
+    samples = sample_rays(octree, origins, dirs, t_far, params.step_m, False, backend=backend)
     prior = field.prior_sdf(samples.points, samples.voxel)
     if params.band is not None:
         keep = prior.abs() < params.band
@@ -256,10 +289,12 @@ def render_image(
     chunk: int = CHUNK_RAYS,
     reference: bool = False,
     support: Support | None = None,
+    backend: Backend | None = None,
 ) -> np.ndarray:
     """(H,W,3) float32 rgb in [0,1] / normals in [-1,1], or (H,W) float32 depth in metres (0 = nothing).
     trusted (V,) bool: voxels whose 8 corner priors are all set (None: priors disabled, search the SDF);
-    support: where surface renders may draw (None: everywhere)."""
+    support: where surface renders may draw (None: everywhere); backend: its kernels walk the voxels and search
+    the lattice (None: the reference render)."""
     if mode not in MODES:
         raise ValueError(f"render mode '{mode}' is not one of {', '.join(MODES)}")
     dev = field.priors.device
@@ -269,7 +304,7 @@ def render_image(
         return np.zeros((height, width, *channels), dtype=np.float32)
     fn = render_rays_reference if reference else render_rays
     parts = [
-        fn(field, octree, origins[i : i + chunk], dirs[i : i + chunk], mode, params, trusted, support)
+        fn(field, octree, origins[i : i + chunk], dirs[i : i + chunk], mode, params, trusted, support, backend)
         for i in range(0, origins.shape[0], chunk)
     ]
     return torch.cat(parts).float().cpu().numpy().reshape(height, width, *channels)

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from h2viz.mapping.kernels import kernel_module
 from h2viz.types import RgbdFrame
+
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend
 
 
 @dataclass
@@ -33,17 +36,19 @@ class FrameRays:
     pixel. Ray directions are computed for the pixels a batch samples, not stored: keyframes accumulate over a
     run, and (P,3) float directions and int64 ids would take 27 bytes a pixel (8 MB a 640x480 keyframe)."""
 
-    def __init__(self, frame: RgbdFrame, device: torch.device) -> None:
-        self._build(frame, device)
+    def __init__(self, frame: RgbdFrame, backend: Backend) -> None:
+        self._build(frame, backend)
 
     @staticmethod
-    def with_points(frame: RgbdFrame, device: torch.device) -> tuple[FrameRays, np.ndarray]:
-        """The frame's rays and its valid pixels' world points (P,3) float32 (for voxel allocation), in one pass."""
+    def with_points(frame: RgbdFrame, backend: Backend) -> tuple[FrameRays, np.ndarray]:
+        """The frame's rays on the backend's device and its valid pixels' world points (P,3) float32 (for voxel
+        allocation), in one pass."""
         rays = FrameRays.__new__(FrameRays)
-        return rays, rays._build(frame, device)
+        return rays, rays._build(frame, backend)
 
-    def _build(self, frame: RgbdFrame, device: torch.device) -> np.ndarray:
-        """Fill the fields; returns the world points (P,3). The fused kernel on the CPU, else this torch code."""
+    def _build(self, frame: RgbdFrame, backend: Backend) -> np.ndarray:
+        """Fill the fields; returns the world points (P,3). The backend's fused kernel, else this torch code."""
+        device = backend.device
         self.index = frame.index
         self.K = frame.K
         self.T_world_camera = frame.T_world_camera
@@ -51,9 +56,10 @@ class FrameRays:
         T = torch.from_numpy(np.asarray(frame.T_world_camera)).to(device, torch.float32)
         self.origin = T[:3, 3]  # (3,)
         self.rotation = T[:3, :3]  # (3,3) camera axes in world coordinates (columns)
-        fused = kernel_module("frame_numba") if device.type == "cpu" else None
-        if fused is not None:
-            valid, depth, rgb, points = fused.frame_rays(frame.depth_m, frame.rgb, frame.K, frame.T_world_camera)
+        kernels = backend.tensor_kernels
+        if kernels is not None:
+            arrays = kernels.frame.frame_rays(frame.depth_m, frame.rgb, frame.K, frame.T_world_camera)
+            valid, depth, rgb, points = arrays
             self.valid, self.depth, self.rgb = (torch.from_numpy(a) for a in (valid, depth, rgb))
             return points
         depth_all = torch.from_numpy(frame.depth_m).to(device, torch.float32).reshape(-1)  # (H*W,)
@@ -119,17 +125,16 @@ def pixel_rays(
     return T[:3, 3].expand_as(dirs), dirs
 
 
-def sample_frames(frames: list[FrameRays], n: int, generator: torch.Generator, fused: bool = True) -> RayBatch:
+def sample_frames(frames: list[FrameRays], n: int, generator: torch.Generator, backend: Backend) -> RayBatch:
     """n random valid-depth rays from each frame that has any, one frame after the other: the same rays as
-    concatenating `FrameRays.sample` (same generator draws), gathered by one compiled call per frame on the CPU
-    when `fused` (else through that torch code)."""
+    concatenating `FrameRays.sample` (same generator draws), gathered by one compiled call per frame with the
+    backend's tensor kernels (else through that torch code)."""
     frames = [f for f in frames if len(f)]
     if not frames:
         return RayBatch.empty()
-    cpu = fused and all(f.depth.device.type == "cpu" for f in frames)
-    kernels = kernel_module("frame_numba") if cpu else None
+    kernels = backend.cpu_kernels(*(f.depth for f in frames))
     if kernels is None:
         return RayBatch.cat([f.sample(n, generator) for f in frames])
     picks = [torch.randint(len(f), (n,), generator=generator).numpy() for f in frames]
-    arrays = kernels.gather_rays(picks, [f.kernel_arrays() for f in frames], [f.shape[1] for f in frames])
+    arrays = kernels.frame.gather_rays(picks, [f.kernel_arrays() for f in frames], [f.shape[1] for f in frames])
     return RayBatch(*(torch.from_numpy(a) for a in arrays))

@@ -7,12 +7,15 @@ along the camera axis and compares directly with depth images.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 
-from h2viz.mapping.kernels import kernel_module
-from h2viz.mapping.octree import VoxelOctree
-from h2viz.mapping.raymarch import voxel_hits
+from h2viz.mapping.octree import VoxelOctree, decode, encode
+
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend
 
 
 @dataclass
@@ -40,11 +43,63 @@ class Hits:
 
 
 def traverse(
-    octree: VoxelOctree, origins: torch.Tensor, dirs: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor
+    octree: VoxelOctree,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    t_near: torch.Tensor,
+    t_far: torch.Tensor,
+    backend: Backend | None = None,
 ) -> Hits:
-    """Allocated voxels crossed by each ray between t_near and t_far (R,): an exact voxel walk per ray that
-    jumps over empty space (numba, see h2viz.mapping.raymarch)."""
-    return Hits(*voxel_hits(octree, origins, dirs, t_near, t_far))
+    """Allocated voxels crossed by each ray between t_near and t_far (R,): an exact voxel walk per ray, compiled
+    and jumping over empty space with the backend's array kernels (h2viz.mapping.raymarch), else
+    `voxel_hits_reference`."""
+    kernels = None if backend is None else backend.array_kernels
+    walk = voxel_hits_reference if kernels is None else kernels.walk.voxel_hits
+    return Hits(*walk(octree, origins, dirs, t_near, t_far))
+
+
+def voxel_hits_reference(
+    octree: VoxelOctree, origins: torch.Tensor, dirs: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(ray, voxel, t_in, t_out) (H,) as raymarch.voxel_hits, in NumPy: the same 3-D DDA in float64 (cell to cell
+    across the nearest boundary, the first axis on ties, inside the leaves' bounding box), stepped for all rays at
+    once and without skipping empty space."""
+    R, dev, vs = origins.shape[0], origins.device, octree.voxel_size_m
+    if octree.n_voxels == 0 or R == 0:
+        empty = torch.zeros(0, dtype=torch.long, device=dev)
+        return empty, empty, empty.float(), empty.float()
+    o, d = (a.detach().cpu().numpy().astype(np.float64) for a in (origins, dirs))  # (R,3)
+    near, far = (a.detach().cpu().numpy().astype(np.float64) for a in (t_near, t_far))  # (R,)
+    coords = decode(octree.voxels.keys)
+    lo, hi = coords.min(0) * vs - 1e-3 * vs, (coords.max(0) + 1) * vs + 1e-3 * vs  # (3,) as the walk table's box
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (lo - o) / d, (hi - o) / d  # (R,3)
+        t0 = np.maximum(near, np.where(d != 0, np.minimum(ta, tb), -np.inf).max(1))
+        t1 = np.minimum(far, np.where(d != 0, np.maximum(ta, tb), np.inf).min(1))
+    outside = ((d == 0) & ((o < lo) | (o > hi))).any(1)
+    t1 = np.where(outside, t0, t1)
+    cell = np.floor((o + d * t0[:, None]) / vs)  # (R,3)
+    step = np.sign(d).astype(np.int64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        nxt = np.where(d > 0, ((cell + 1) * vs - o) / d, np.where(d < 0, (cell * vs - o) / d, np.inf))
+        delta = np.where(d != 0, vs / np.abs(d), np.inf)
+    cell, t, live = cell.astype(np.int64), t0.copy(), np.flatnonzero(t0 < t1)
+    out: list[tuple[np.ndarray, ...]] = []
+    while live.size:
+        vid = octree.voxels.lookup(encode(cell[live]))  # (A,)
+        axis = np.argmin(nxt[live], axis=1)  # (A,) first axis on ties
+        t_in, t_next = t[live], nxt[live, axis]
+        t_out = np.minimum(t_next, t1[live])
+        hit = (vid >= 0) & (t_out > t_in)
+        out.append((live[hit], vid[hit], t_in[hit], t_out[hit]))
+        cell[live, axis] += step[live, axis]
+        nxt[live, axis] += delta[live, axis]
+        t[live] = t_next
+        live = live[t_next < t1[live]]
+    ray, voxel, t_in, t_out = (np.concatenate(col) for col in zip(*out, strict=True))
+    order = np.argsort(ray, kind="stable")  # ray-major; each ray's hits were found front to back
+    as_t = lambda a, dtype: torch.from_numpy(np.ascontiguousarray(a[order]).astype(dtype)).to(dev)  # noqa: E731
+    return as_t(ray, np.int64), as_t(voxel, np.int64), as_t(t_in, np.float32), as_t(t_out, np.float32)
 
 
 def sample_hits(hits: Hits, origins: torch.Tensor, dirs: torch.Tensor, step_m: float, jitter: bool) -> Samples:
@@ -69,10 +124,11 @@ def sample_rays(
     step_m: float,
     jitter: bool,
     t_near: torch.Tensor | None = None,
+    backend: Backend | None = None,
 ) -> Samples:
     """Traverse and sample R rays (origins, dirs (R,3), t_far (R,)) inside allocated voxels."""
     near = torch.zeros_like(t_far) if t_near is None else t_near
-    hits = traverse(octree, origins, dirs, near, t_far)
+    hits = traverse(octree, origins, dirs, near, t_far, backend)
     samples = sample_hits(hits, origins, dirs, step_m, jitter)
     # A sample rounded onto a voxel face may fall in a neighbour; keep the voxel the traversal found.
     return samples
@@ -121,17 +177,17 @@ def band_samples(
     depth: torch.Tensor,
     layout: BandLayout,
     generator: torch.Generator | None = None,
-    fused: bool = True,
+    backend: Backend | None = None,
 ) -> Samples:
     """Training samples where the losses act, without traversing the whole ray (see BandLayout); only
-    candidates inside allocated voxels are kept. depth (R,) > 0. `fused` runs the numba kernel
-    (h2viz.mapping.band) for CPU rays; the torch code below is its reference."""
+    candidates inside allocated voxels are kept. depth (R,) > 0. A backend with tensor kernels runs the numba one
+    (h2viz.mapping.band) for CPU rays; the torch code below is its reference (and runs without a backend)."""
     R, dev = depth.shape[0], depth.device
     n_free, n_front, n_trunc = layout.n_free, layout.n_front, layout.n_truncation
     jitter = torch.rand(R, layout.n_candidates, generator=generator)  # (R,F+N+B) reproducible on any device
-    kernels = kernel_module("band") if fused and dev.type == "cpu" else None
+    kernels = None if backend is None else backend.cpu_kernels(depth)
     if kernels is not None:
-        points, t, ray, voxel = kernels.band_candidates(octree, origins, dirs, depth, jitter, layout)
+        points, t, ray, voxel = kernels.band.band_candidates(octree, origins, dirs, depth, jitter, layout)
         return Samples(points, t, ray, voxel, R)
     jitter = jitter.to(dev)
     f32 = lambda v: torch.tensor(v, dtype=torch.float32).to(depth.dtype)  # noqa: E731  (the kernel's float32)

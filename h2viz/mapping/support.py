@@ -9,19 +9,24 @@ can cross zero and close such gaps with surfaces nobody saw, 3-7 cm in front of 
 A voxel's 512 bits are 8 uint64 words, word x holding bit 8*y + z of local cell (x, y, z); dilating by one cell
 is then a few shifts and ORs over all voxels at once, along z, then y, then x, with the six face neighbours
 supplying the border cells. Bits travel through allocated voxels only: a cell whose only observed neighbour lies
-diagonally across a voxel that does not exist stays unsupported (a corner of the allocated region). With numba,
-`contains` tests the points in one compiled loop (`support_numba`) that gives the same answers.
+diagonally across a voxel that does not exist stays unsupported (a corner of the allocated region). With a
+backend's array kernels, `contains` tests the points in one compiled loop (`support_numba`) that gives the same
+answers.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.marching import pack_rows, unique_rows, unpack_rows
 from h2viz.mapping.octree import FACE_DIRS, KeyIndex, VoxelOctree, decode, encode
+
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend
 
 SUB = 8  # cells per voxel edge
 _ONE = np.uint64(1)
@@ -60,8 +65,10 @@ def _in_voxels(index: KeyIndex, cells: np.ndarray) -> tuple[np.ndarray, np.ndarr
 class ObservedCells:
     """The observed-cell bits of every leaf voxel (8 uint64 words each), growing with the octree."""
 
-    def __init__(self, voxel_size_m: float) -> None:
+    def __init__(self, voxel_size_m: float, backend: Backend | None = None) -> None:
         self.cell_m = float(voxel_size_m) / SUB
+        arrays = None if backend is None else backend.array_kernels
+        self.fast = None if arrays is None else arrays.support  # the snapshots' compiled test (None: NumPy)
         self.words = np.zeros((0, SUB), dtype=np.uint64)  # (V,8)
 
     def grow(self, n_voxels: int) -> None:
@@ -82,7 +89,8 @@ class ObservedCells:
         the dilation are built on the thread that first tests a face); `strict` (V,) bool marks voxels whose faces
         need depth measured in their own cell (see ObservedSupport)."""
         self.grow(octree.n_voxels)
-        return ObservedSupport(self.cell_m, octree.voxels.keys[: octree.n_voxels], self.words.copy(), strict)
+        keys = octree.voxels.keys[: octree.n_voxels]
+        return ObservedSupport(self.cell_m, keys, self.words.copy(), strict, fast=self.fast)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"words": self.words}
@@ -100,6 +108,7 @@ class ObservedSupport:
     keys: np.ndarray  # (V,) int64
     words: np.ndarray  # (V,8) uint64
     strict: np.ndarray | None = None  # (V,) bool: a face there needs its own cell observed, not only a neighbour
+    fast: ModuleType | None = None  # the compiled test (h2viz.mapping.support_numba), None: `contains_reference`
     _index: KeyIndex | None = None
     _table: tuple[np.ndarray, np.ndarray] | None = None  # voxel hash table of the compiled test (built on first use)
 
@@ -136,7 +145,7 @@ class ObservedSupport:
         """(N,) bool: points (N,3) whose cell is within one cell of an observed cell (in `strict` voxels: whose
         cell is observed)."""
         cells = np.floor(np.asarray(points) / self.cell_m).astype(np.int64)
-        fast = kernel_module("support_numba")
+        fast = self.fast
         if fast is not None:
             if self._table is None:
                 self._table = fast.build_table(np.ascontiguousarray(self.keys, dtype=np.int64))

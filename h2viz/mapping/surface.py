@@ -1,6 +1,6 @@
 """Which render samples the geometry network evaluates: only those that can carry rendering weight.
 
-A sample whose SDF s (truncation units) has |s| >= theta = temperature * ln(1 / NEGLIGIBLE_WEIGHT) gets a
+A sample whose SDF s (truncation units) has |s| >= theta = temperature * ln(1 / raycast.NEGLIGIBLE_WEIGHT) gets a
 rendering weight sigmoid(s/tau) * sigmoid(-s/tau) below NEGLIGIBLE_WEIGHT. Evaluation starts at the
 lattice's probes (raymarch.py) and spreads, round by round, along each ray to the neighbours of evaluated
 samples that may lie within theta of a surface: towards the camera while s < theta (in front of the surface,
@@ -19,7 +19,6 @@ it further away) is walked again to t_far without trusting the priors. The bookk
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -28,11 +27,10 @@ from h2viz.mapping import lattice_search as ls
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.jit import parallel_region
 from h2viz.mapping.octree import VoxelOctree
+from h2viz.mapping.raycast import SearchParams
 from h2viz.mapping.raymarch import Lattice, MarchParams, rays64, render_lattice
 from h2viz.mapping.sampling import Samples
 
-NEGLIGIBLE_WEIGHT = 1e-3
-"""Rendering weights (peak 0.25) below this are treated as zero when choosing what to evaluate."""
 LIPSCHITZ = 1.5
 """Assumed bound on how fast the SDF changes per metre (1 for a true distance field), for coarse probes."""
 NEAR_SLACK = 0.05
@@ -43,27 +41,10 @@ NEAR_MISS = 0.5
 """Trusted priors that come within theta + this of zero without crossing it are probed there."""
 
 
-@dataclass(frozen=True)
-class SearchParams:
-    step_m: float
-    truncation_m: float
-    temperature: float
-    after_m: float  # the walk goes this far beyond the first prior crossing
-    wave: int = 8  # probes per ray and round
-
-    @property
-    def theta(self) -> float:
-        """|SDF| (truncation units) beyond which a sample's weight is negligible."""
-        return self.temperature * math.log(1.0 / NEGLIGIBLE_WEIGHT)
-
-    def rules(self) -> ls.Rules:
-        seeds = self.after_m + 1.5 * self.step_m
-        return ls.Rules(self.truncation_m, self.theta, self.theta + NEAR_SLACK, self.wave, seeds)
-
-
-MLP_ROWS = 32768
-"""Field evaluations that build autograd graphs (normals) run on this many points at a time, so that their
-intermediate tensors stay in the CPU's cache."""
+def search_rules(params: SearchParams) -> ls.Rules:
+    """The lattice search's rules for a render's search settings."""
+    seeds = params.after_m + 1.5 * params.step_m
+    return ls.Rules(params.truncation_m, params.theta, params.theta + NEAR_SLACK, params.wave, seeds)
 
 
 def residual_sdf(field: HybridField, points: torch.Tensor) -> torch.Tensor:
@@ -77,7 +58,7 @@ class LatticeSearch:
     """The field's SDF on a growing subset of a lattice's samples (NaN where not evaluated)."""
 
     def __init__(self, field: HybridField, lat: Lattice, o: np.ndarray, d: np.ndarray, params: SearchParams) -> None:
-        self.field, self.lat, self.rules = field, lat, params.rules()
+        self.field, self.lat, self.rules = field, lat, search_rules(params)
         self.o, self.d = o.astype(np.float32), d.astype(np.float32)  # (R,3) exactly the torch rays
         R, S = lat.start.shape[0], lat.t.shape[0]
         margin = LIPSCHITZ * params.step_m / params.truncation_m * np.linalg.norm(d, axis=1)

@@ -178,7 +178,7 @@ class RosbagSource(FrameSource):
         """One pass through the bag; in real-time mode frames come at the bag's rate, newest first."""
         keys = [(p, k) for p, k in self.selected() if isinstance(k, FrameKey)]
         frames = stream_pairs(self.bag, self.topics.depth, self.topics.rgb, keys, self._missing)
-        if self.rcfg.realtime:
+        if self.cfg.realtime:
             frames = paced(frames, self.clock, self.sleep, self._drop)
         for position, key, depth_raw, rgb_raw in frames:
             try:

@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from h2viz.geometry import camera_rays
-from h2viz.sources.scene_layout import layout
+from h2viz.sources.scene_layout import layout, load_recipe
 from h2viz.sources.scene_mesh import Geometry
 
 BACKGROUND_RGB = np.array([226, 232, 240], dtype=np.uint8)  # what rays that leave the open-top room see
@@ -207,6 +207,7 @@ def _to_uint8(rgb: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=4)
-def build_scene(seed: int) -> Scene:
-    """The room for `seed` (built once, then shared): same seed, same scene."""
-    return Scene(seed, layout(seed))
+def build_scene(seed: int, recipe: str = "") -> Scene:
+    """The room for `seed` painted from the recipe file `recipe` (empty: the packaged one), built once and then
+    shared: same seed and recipe, same scene."""
+    return Scene(seed, layout(seed, load_recipe(recipe)))

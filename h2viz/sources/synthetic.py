@@ -47,7 +47,7 @@ class SyntheticSource(FrameSource):
             )
         if sc.n_frames < 1 or sc.depth_noise_m < 0 or sc.prefetch < 0:
             raise SourceError("synthetic source: n_frames must be >= 1, depth_noise_m and prefetch >= 0")
-        self.scene: Scene = build_scene(sc.seed)
+        self.scene: Scene = build_scene(sc.seed, sc.recipe)
         self.K = intrinsics(sc.width, sc.height, sc.fov_deg)
         self.poses = trajectory(self.scene, sc.n_frames)  # (n,4,4)
         self._pending: dict[int, Future[RgbdFrame]] = {}

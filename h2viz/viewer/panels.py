@@ -140,7 +140,7 @@ class Panels:
                 float(np.clip(s.mesh_update_hz, 0.0, 5.0)),
                 hint=f"0: no live mesh, re-meshed every {s.mesh_every} frames instead",
             )
-            res = gui.add_slider("Marching cubes res.", 2, 16, 1, int(self.cfg.viewer.mesh_resolution))
+            res = gui.add_slider("Marching cubes res.", 2, 16, 1, int(self.cfg.viewer.live_mesh_resolution))
             observed = gui.add_checkbox(
                 "Observed surfaces only",
                 bool(self.cfg.mapping.mesh_observed_only),

@@ -5,6 +5,7 @@ call) composes source + mapper -> MappingWorker -> Dashboard; only it imports th
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import io
 import logging
@@ -12,10 +13,12 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from importlib import resources
 from typing import Any
 
 import numpy as np
 import viser
+from viser.theme import TitlebarConfig, TitlebarImage
 
 from h2viz.config import Config
 from h2viz.sources.base import make_source
@@ -38,11 +41,23 @@ class LocalViserServer(viser.ViserServer):
         return None
 
 
+LOGO = resources.files("h2viz") / "assets" / "logo.svg"
+"""The dashboard's logo, shipped with h2viz (assets/logo.svg in a clone)."""
+
+
+def logo() -> TitlebarImage:
+    """The logo as an inline image for the title bar (no request back to the server)."""
+    data = base64.b64encode(LOGO.read_bytes()).decode()
+    url = f"data:image/svg+xml;base64,{data}"
+    return TitlebarImage(image_url_light=url, image_url_dark=url, image_alt="h2viz", href=None)
+
+
 def make_viser_server(host: str, port: int, label: str = "h2viz") -> LocalViserServer:
     """Start a quiet, local-only viser server (dark theme, no share button)."""
     with contextlib.redirect_stdout(io.StringIO()):  # viser announces itself on stdout
         server = LocalViserServer(host=host, port=port, label=label, verbose=False)
     server.gui.configure_theme(
+        titlebar_content=TitlebarConfig(buttons=None, image=logo()),
         dark_mode=True,
         show_share_button=False,
         show_logo=False,

@@ -136,7 +136,7 @@ class FrameFeed:
 
 def settings_from_config(cfg: Config) -> WorkerSettings:
     return WorkerSettings(
-        realtime=cfg.viewer.realtime,
+        realtime=cfg.source.realtime,
         stride=max(1, cfg.source.stride),
         mesh_every=cfg.mapping.mesh_every,
         mesh_update_hz=cfg.viewer.mesh_update_hz,

@@ -60,7 +60,7 @@ class MappingWorker(CommandServing):
         self, source: FrameSource, mapper: Mapper, cfg: Config, settings: WorkerSettings | None = None
     ) -> None:
         self.source, self.mapper, self.cfg = source, mapper, cfg
-        self.mapper.mesh_resolution = cfg.viewer.mesh_resolution  # the live mesh; downloads use cfg.mapping's
+        self.mapper.mesh_resolution = cfg.viewer.live_mesh_resolution  # downloads use cfg.mapping.mesh_resolution
         self.mapper.on_iteration = self._between_steps
         self.settings = settings or settings_from_config(cfg)
         self.slot: LatestSlot[MapSnapshot] = LatestSlot()

@@ -9,6 +9,7 @@ import torch
 
 from h2viz.mapping.color_prior import EMPTY, SUB, ColorPrior
 from h2viz.mapping.octree import VoxelOctree
+from tests.mapping.backends import FAST, REFERENCE
 
 VS = 0.1
 
@@ -20,7 +21,7 @@ def _octree(points: np.ndarray) -> VoxelOctree:
 
 
 def _prior(octree: VoxelOctree, fused: bool) -> tuple[ColorPrior, torch.Tensor]:
-    prior = ColorPrior(VS, fused=fused)
+    prior = ColorPrior(VS, backend=FAST if fused else REFERENCE)
     prior.grow(octree.n_voxels)
     origin = torch.from_numpy(octree.voxel_coords()).float() * VS
     return prior, origin

@@ -10,6 +10,7 @@ from torch import nn
 from h2viz.config import MappingConfig
 from h2viz.errors import H2vizError
 from h2viz.mapping.field import HybridField, mlp
+from tests.mapping.backends import FAST, REFERENCE
 
 numba_kernels = pytest.importorskip("h2viz.mapping.decoder_numba")
 
@@ -56,8 +57,8 @@ def test_dead_units_pass_no_gradient_and_no_grad_calls_build_no_graph() -> None:
 
 def test_the_field_runs_its_default_decoder_through_the_kernels_and_matches_the_torch_path() -> None:
     cfg = MappingConfig(hash_log2_size=12)
-    fast = HybridField(cfg)
-    ref = HybridField(MappingConfig(hash_log2_size=12, kernels="torch"))
+    fast = HybridField(cfg, FAST)
+    ref = HybridField(cfg, REFERENCE)
     ref.load_state_dict(fast.state_dict())
     feats = torch.randn(50_000, fast.geo_grid.output_dim)
     torch.testing.assert_close(fast.residual(feats), ref.residual(feats), rtol=1e-5, atol=1e-6)

@@ -1,6 +1,6 @@
 """Hash-grid encoding: parity with the plain reference, lattice exactness, continuity, trilinearity, hashing
 range and spread, fitting a smooth field, CUDA. Tests that take `kernels` run on the torch path and on the
-fused numba kernels (kernels="auto" on the CPU; see test_hash_numba.py for the kernels themselves)."""
+fused numba kernels (the backend of kernels="auto" on the CPU; see test_hash_numba.py for the kernels themselves)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from torch import Tensor, nn
 
 from h2viz.errors import ConfigError, H2vizError
 from h2viz.mapping import encoding
+from h2viz.mapping.backend import resolve_backend
 from h2viz.mapping.encoding import (
     HashGrid,
     encode_for_compile,
@@ -20,12 +21,11 @@ from h2viz.mapping.encoding import (
     level_cell_sizes,
     spatial_hash,
 )
-from h2viz.mapping.kernels import kernel_module
 
 BASE_CELL_M = 0.1
 SCALE = 2.0
 FINEST_CELL_M = BASE_CELL_M / SCALE**3
-NO_NUMBA = kernel_module("hash_numba") is None
+NO_NUMBA = resolve_backend("auto", "cpu").tensor_kernels is None
 KERNELS = ["torch", pytest.param("auto", marks=pytest.mark.skipif(NO_NUMBA, reason="no numba"))]
 
 
@@ -41,7 +41,8 @@ def _one_thread() -> Iterator[None]:
 def _grid(log2_size: int = 19, spread: float = 1.0, seed: int = 0, kernels: str = "torch") -> HashGrid:
     """A float64 grid whose table entries are O(spread), so a wrong blend shows as an O(1) error."""
     torch.manual_seed(seed)
-    grid = HashGrid(log2_size=log2_size, base_cell_m=BASE_CELL_M, scale=SCALE, init_std=spread, kernels=kernels)
+    grid = HashGrid(log2_size=log2_size, base_cell_m=BASE_CELL_M, scale=SCALE, init_std=spread,
+                    backend=resolve_backend(kernels))
     return grid.double()
 
 
@@ -97,8 +98,8 @@ def test_compile_friendly_form_matches_reference() -> None:
 def test_compiled_grid_matches_eager() -> None:
     """torch.compile (needs a C++ compiler on CPU) serves gradient-free calls with the same values."""
     torch.manual_seed(17)
-    eager = HashGrid(log2_size=14, init_std=1.0, kernels="torch")
-    compiled = HashGrid(log2_size=14, init_std=1.0, compile=True, kernels="torch")
+    eager = HashGrid(log2_size=14, init_std=1.0)
+    compiled = HashGrid(log2_size=14, init_std=1.0, compile=True)
     compiled.load_state_dict(eager.state_dict())
     for n in (3000, 2000):  # a second size must not break the dynamic-shape graph
         x = _test_points(n // 3, seed=n).float()
@@ -136,7 +137,7 @@ def test_gradient_wrt_points_with_frozen_tables() -> None:
 def test_float32_accurate_far_from_origin(kernels: str) -> None:
     """float32 points ~1 km out still get their in-cell fraction right (positions are scaled in float64)."""
     torch.manual_seed(5)
-    grid32 = HashGrid(log2_size=16, init_std=1.0, kernels=kernels)
+    grid32 = HashGrid(log2_size=16, init_std=1.0, backend=resolve_backend(kernels))
     x32 = _test_points(500, seed=6).float()
     out32 = grid32(x32)
     out64 = hash_grid_reference(x32.double(), grid32.tables.detach().double(), BASE_CELL_M, SCALE)
@@ -222,7 +223,7 @@ class _Regressor(nn.Module):
 def _fit_error(seed: int = 12, kernels: str = "torch") -> float:
     """RMS error on held-out points after fitting a smooth field on a 1 m cube (300 Adam steps)."""
     torch.manual_seed(seed)
-    model = _Regressor(HashGrid(log2_size=16, init_std=1e-4, kernels=kernels))
+    model = _Regressor(HashGrid(log2_size=16, init_std=1e-4, backend=resolve_backend(kernels)))
     target = lambda p: torch.sin(2 * torch.pi * p[:, 0]) * torch.cos(2 * torch.pi * p[:, 1]) + p[:, 2] ** 2
     offset = torch.tensor([-2.3, 0.6, -0.4])  # the cube straddles no special place
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
@@ -262,7 +263,7 @@ def test_rejects_bad_arguments() -> None:
     with pytest.raises(ConfigError):
         HashGrid(base_cell_m=0.0)
     with pytest.raises(ConfigError, match="mapping.kernels"):
-        HashGrid(log2_size=4, kernels="cuda")
+        resolve_backend("cuda")
     with pytest.raises(H2vizError):
         HashGrid(log2_size=4)(torch.zeros(5, 2))
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from h2viz.mapping.fine_prior import SUB, FinePrior
+from tests.mapping.backends import FAST, REFERENCE
 
 VS, TR = 0.1, 0.05
 K = np.array([[200.0, 0.0, 80.0], [0.0, 200.0, 60.0], [0.0, 0.0, 1.0]])
@@ -20,7 +21,7 @@ def _voxels(x: range, y: range, z: range) -> torch.Tensor:
 
 
 def _prior(origins: torch.Tensor, fused: bool = True) -> FinePrior:
-    prior = FinePrior(VS, TR, fused=fused)
+    prior = FinePrior(VS, TR, backend=FAST if fused else REFERENCE)
     prior.grow(origins.shape[0])
     return prior
 

@@ -3,13 +3,12 @@ the tiled decoder vs a plain pass (values and gradients)."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import torch
 
 from h2viz.config import MappingConfig
+from h2viz.mapping.backend import resolve_backend
 from h2viz.mapping.field import HybridField, mlp
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.tiled import tiled
@@ -21,7 +20,7 @@ def _field(kernels: str) -> tuple[HybridField, VoxelOctree]:
     tree = VoxelOctree(0.1, min_points=0, expansion=False)
     rng = np.random.default_rng(0)
     tree.allocate((rng.integers(-5, 5, size=(200, 3)) + 0.5) * 0.1)
-    field = HybridField(dataclasses.replace(MappingConfig(), kernels=kernels, hash_log2_size=12))
+    field = HybridField(MappingConfig(hash_log2_size=12), resolve_backend(kernels))
     field.sync(tree)
     field.priors = torch.from_numpy(rng.normal(size=tree.n_corners).astype(np.float32)).requires_grad_()
     return field, tree

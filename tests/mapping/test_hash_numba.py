@@ -13,6 +13,7 @@ from torch import Tensor
 from h2viz.errors import H2vizError
 from h2viz.mapping.encoding import HashGrid, encode, hash_grid_reference, level_cell_sizes
 from h2viz.mapping.jit import njit
+from tests.mapping.backends import FAST
 
 numba = pytest.importorskip("numba")
 hash_numba = pytest.importorskip("h2viz.mapping.hash_numba")
@@ -107,7 +108,7 @@ def test_float64_tables_match_reference_tightly(shape: tuple[int, int, int, floa
 
 def test_hash_grid_auto_and_torch_kernels_agree() -> None:
     torch.manual_seed(6)
-    fused, plain = HashGrid(log2_size=15, init_std=1.0), HashGrid(log2_size=15, init_std=1.0, kernels="torch")
+    fused, plain = HashGrid(log2_size=15, init_std=1.0, backend=FAST), HashGrid(log2_size=15, init_std=1.0)
     plain.load_state_dict(fused.state_dict())
     x = _points(400, seed=7, cell_m=0.1).float()
     upstream = torch.randn(x.shape[0], fused.output_dim)
@@ -125,7 +126,7 @@ def test_hash_grid_auto_and_torch_kernels_agree() -> None:
 def test_points_needing_a_gradient_take_the_torch_path() -> None:
     """Normals differentiate the encoding w.r.t. x; the fused kernels only provide table gradients."""
     torch.manual_seed(8)
-    grid = HashGrid(log2_size=12, init_std=1.0)
+    grid = HashGrid(log2_size=12, init_std=1.0, backend=FAST)
     x = _points(100, seed=9, cell_m=0.1).float().requires_grad_()
     out = grid(x)
     assert type(out.grad_fn).__name__ != "_FusedEncodeBackward"

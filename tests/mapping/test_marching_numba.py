@@ -7,21 +7,19 @@ import numpy as np
 import pytest
 import trimesh
 
-from h2viz.mapping import marching, marching_numba, mc_table
+from h2viz.mapping import marching_numba, mc_table
 from h2viz.mapping.marching import SNAP, ChunkLattice, chunk_lattice, surface_mesh
 from h2viz.mapping.mc_table import case_table
 
 
 def lattice_and_values(voxels: np.ndarray, resolution: int, sdf) -> tuple[ChunkLattice, np.ndarray]:
-    lat = chunk_lattice((0, 0, 0), voxels, resolution)
+    lat = chunk_lattice((0, 0, 0), voxels, resolution, fast=marching_numba)
     spacing = 0.1 / resolution
     return lat, sdf((lat.points + lat.origin) * spacing).astype(np.float32)
 
 
-def reference(lat: ChunkLattice, values: np.ndarray, monkeypatch: pytest.MonkeyPatch) -> tuple[np.ndarray, np.ndarray]:
-    with monkeypatch.context() as m:
-        m.setattr(marching, "kernel_module", lambda name: None)
-        return surface_mesh(lat, values, 0.1 / 8)
+def reference(lat: ChunkLattice, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return surface_mesh(lat, values, 0.1 / 8)  # scikit-image, welded by position
 
 
 def sphere(centre: np.ndarray, r: float):
@@ -29,13 +27,13 @@ def sphere(centre: np.ndarray, r: float):
 
 
 @pytest.mark.parametrize("masked", [False, True])
-def test_sphere_has_the_reference_vertices_and_surface(masked: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_sphere_has_the_reference_vertices_and_surface(masked: bool) -> None:
     centre = np.array([0.213, 0.187, 0.241])
     g = np.stack(np.meshgrid(*[np.arange(5)] * 3, indexing="ij"), -1).reshape(-1, 3)
     voxels = g[(g[:, 0] < 3) | (g[:, 2] > 2)] if masked else g  # a masked block cuts the sphere open
     lat, values = lattice_and_values(voxels, 8, sphere(centre, 0.17))
-    fast_v, fast_f = surface_mesh(lat, values, 0.1 / 8)
-    ref_v, ref_f = reference(lat, values, monkeypatch)
+    fast_v, fast_f = surface_mesh(lat, values, 0.1 / 8, marching_numba)
+    ref_v, ref_f = reference(lat, values)
     # the same crossings, placed at the same bits
     np.testing.assert_array_equal(np.unique(fast_v, axis=0), np.unique(ref_v, axis=0))
     fast, ref = trimesh.Trimesh(fast_v, fast_f, process=False), trimesh.Trimesh(ref_v, ref_f, process=False)
@@ -110,7 +108,7 @@ def test_crossings_that_snap_to_a_lattice_point_share_one_vertex() -> None:
     )
 
 
-def test_vertex_matching_agrees_with_the_sorting_reference(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_vertex_matching_agrees_with_the_sorting_reference() -> None:
     """Colours carried over between re-meshings: the hash-table match and numpy's unique give the same indices,
     with repeated rows (first index) and -0.0 equal to 0.0."""
     from h2viz.mapping import mesh_passes
@@ -122,21 +120,18 @@ def test_vertex_matching_agrees_with_the_sorting_reference(monkeypatch: pytest.M
     new = np.concatenate([old[rng.permutation(3000)[:2000]], rng.normal(size=(1500, 3)).astype(np.float32)])
     new[0], new[0, 0] = old[9], 0.0
     before = MeshChunk((0, 0, 0), old, np.zeros((0, 3), np.int32), np.zeros((3000, 3), np.uint8), 0)
-    fast = mesh_passes._same_vertex(new, before)
-    monkeypatch.setattr(mesh_passes, "kernel_module", lambda name: None)
+    fast = mesh_passes._same_vertex(new, before, marching_numba)
     np.testing.assert_array_equal(fast, mesh_passes._same_vertex(new, before))
     assert (fast >= 0).sum() == 2000 and fast[0] == 9 and 5 not in fast
 
 
 @pytest.mark.parametrize("resolution", [1, 4, 8])
-def test_chunk_lattice_matches_the_numpy_reference(resolution: int, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_chunk_lattice_matches_the_numpy_reference(resolution: int) -> None:
     rng = np.random.default_rng(resolution)
     voxels = np.unique(rng.integers(-3, 4, size=(60, 3)), axis=0) + np.array([40, -7, 3])
     flags = rng.random(len(voxels)) < 0.3
-    fast = chunk_lattice((5, -1, 0), voxels, resolution, flags)
-    with monkeypatch.context() as m:
-        m.setattr(marching, "kernel_module", lambda name: None)
-        ref = chunk_lattice((5, -1, 0), voxels, resolution, flags)
+    fast = chunk_lattice((5, -1, 0), voxels, resolution, flags, marching_numba)
+    ref = chunk_lattice((5, -1, 0), voxels, resolution, flags)
     assert fast.key == ref.key
     for name in ("origin", "cells", "points", "point_voxel", "point_flagged"):
         np.testing.assert_array_equal(getattr(fast, name), getattr(ref, name), err_msg=name)

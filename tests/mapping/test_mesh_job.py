@@ -54,7 +54,7 @@ def test_frozen_field_matches_the_live_one(geo_layers: int) -> None:
     mapper, _, _ = sphere_mapper(2, geo_layers=geo_layers)
     with torch.no_grad():  # a residual large enough that the bound shapes it
         mapper.field.geo_mlp[-1].bias += 0.8
-    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
+    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m, backend=mapper.backend)
     points, ids = probe_points(mapper)
     with torch.no_grad():
         live = mapper.field.sdf(torch.from_numpy(points), torch.from_numpy(ids)).numpy() * mapper.cfg.truncation_m
@@ -70,7 +70,7 @@ def test_frozen_field_matches_the_live_one(geo_layers: int) -> None:
 def test_frozen_field_ignores_later_training() -> None:
     # colour from the network alone here; the colour priors are shared, not frozen (next test)
     mapper, scene, poses = sphere_mapper(2, color_prior=False, color_supervision="surface")
-    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
+    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m, backend=mapper.backend)
     points, ids = probe_points(mapper, 5000)
     sdf, rgb = frozen.sdf_m(points, ids), frozen.color_u8(points)
     mapper.integrate(scene.frame(2, poses[2]))  # trains the live field in place
@@ -84,7 +84,7 @@ def test_frozen_field_ignores_later_training() -> None:
 def test_frozen_field_shares_the_colour_priors_instead_of_copying_them() -> None:
     mapper, scene, poses = sphere_mapper(2)
     live = mapper.field.color_prior
-    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
+    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m, backend=mapper.backend)
     assert live is not None and frozen.field.color_prior is not None and mapper.field.color_prior is live
     assert frozen.field.color_prior.sums.data_ptr() == live.sums.data_ptr()  # no copy of ~12 kB a voxel
     points, ids = probe_points(mapper, 5000)
@@ -109,9 +109,10 @@ def test_jobs_on_another_thread_then_a_full_refresh_equal_a_fresh_mesh() -> None
     assert mapper.mesher.stale(mapper.frames_done) > 0
     mesh = mapper.mesh()  # every chunk brought up to the current field
     assert mapper.mesher.stale(mapper.frames_done) == 0 and mapper.mesh_job() is None
-    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m)
+    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m, backend=mapper.backend)
     meshable = np.arange(mapper.octree.n_voxels)  # every voxel, as the mapper's jobs with the filter on
-    fresh_mesher = ChunkedMesher(mapper.voxel_size_m, mapper.cfg.mesh_resolution, mapper.cfg.chunk_voxels)
+    cfg = mapper.cfg
+    fresh_mesher = ChunkedMesher(mapper.voxel_size_m, cfg.mesh_resolution, cfg.chunk_voxels, mapper.backend)
     coords = mapper.octree.voxel_coords()[meshable]
     strict = ~mapper.priors.initialised(mapper.octree.n_voxels)
     keep = mapper.observed.snapshot(mapper.octree, strict).contains  # faces near measured depth

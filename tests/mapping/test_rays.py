@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-import h2viz.mapping.rays as rays_module
 from h2viz.geometry import backproject
 from h2viz.mapping.rays import FrameRays, RayBatch, sample_frames
 from h2viz.types import RgbdFrame
+from tests.mapping.backends import FAST, REFERENCE, needs_numba
 
 pytest.importorskip("numba")
 
@@ -28,11 +28,11 @@ def _frame() -> RgbdFrame:
     return RgbdFrame(index=7, timestamp=0.0, rgb=rgb, depth_m=depth, K=K, T_world_camera=T)
 
 
-def test_fused_frame_rays_match_the_torch_path_and_back_projection(monkeypatch: pytest.MonkeyPatch) -> None:
+@needs_numba
+def test_fused_frame_rays_match_the_torch_path_and_back_projection() -> None:
     frame = _frame()
-    fast, points = FrameRays.with_points(frame, torch.device("cpu"))
-    monkeypatch.setattr(rays_module, "kernel_module", lambda name: None)  # the torch reference
-    ref, ref_points = FrameRays.with_points(frame, torch.device("cpu"))
+    fast, points = FrameRays.with_points(frame, FAST)
+    ref, ref_points = FrameRays.with_points(frame, REFERENCE)
     assert torch.equal(fast.valid, ref.valid)
     assert len(fast) == int((frame.depth_m > 0).sum())
     assert torch.equal(fast.depth, ref.depth)
@@ -44,12 +44,12 @@ def test_fused_frame_rays_match_the_torch_path_and_back_projection(monkeypatch: 
     # a ray of z-normalised direction reaches its pixel's point at t = depth
     rebuilt = fast.origin + fast.dirs * fast.depth[:, None]
     np.testing.assert_allclose(rebuilt.numpy(), points, atol=2e-5)
-    assert FrameRays(frame, torch.device("cpu")).valid.shape == fast.valid.shape
+    assert FrameRays(frame, FAST).valid.shape == fast.valid.shape
 
 
 def test_frame_rays_keep_11_bytes_a_pixel_and_sampled_rays_reach_their_points() -> None:
     frame = _frame()
-    rays, points = FrameRays.with_points(frame, torch.device("cpu"))
+    rays, points = FrameRays.with_points(frame, FAST)
     kept = [getattr(rays, name) for name in vars(rays) if isinstance(getattr(rays, name), torch.Tensor)]
     per_pixel = [t for t in kept if t.ndim and t.shape[0] == len(rays)]
     assert sum(t.element_size() * t.numel() for t in per_pixel) == 11 * len(rays)  # id int32, depth, rgb
@@ -78,12 +78,12 @@ def test_sampling_several_frames_gives_the_rays_of_the_torch_path() -> None:
                                 T_world_camera=T))  # fmt: skip
     empty = RgbdFrame(index=20, timestamp=0.0, rgb=frames[0].rgb, depth_m=np.zeros((48, 64), np.float32),
                       K=frames[0].K, T_world_camera=np.eye(4))  # fmt: skip
-    rays = [FrameRays(f, torch.device("cpu")) for f in (frames[0], empty, *frames[1:])]
-    fast = sample_frames(rays, 300, torch.Generator().manual_seed(5))
-    ref = sample_frames(rays, 300, torch.Generator().manual_seed(5), fused=False)
+    rays = [FrameRays(f, FAST) for f in (frames[0], empty, *frames[1:])]
+    fast = sample_frames(rays, 300, torch.Generator().manual_seed(5), FAST)
+    ref = sample_frames(rays, 300, torch.Generator().manual_seed(5), REFERENCE)
     assert fast.origins.shape == (900, 3) and fast.depth.shape == (900,)
     for name in ("origins", "dirs", "rgb", "depth"):
         torch.testing.assert_close(getattr(fast, name), getattr(ref, name), rtol=1e-6, atol=1e-6)
     by_hand = RayBatch.cat([r.sample(300, g) for g in [torch.Generator().manual_seed(5)] for r in rays if len(r)])
     torch.testing.assert_close(fast.rgb, by_hand.rgb, rtol=0, atol=0)
-    assert len(sample_frames([rays[1]], 10, torch.Generator()).depth) == 0
+    assert len(sample_frames([rays[1]], 10, torch.Generator(), FAST).depth) == 0

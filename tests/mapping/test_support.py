@@ -8,10 +8,10 @@ import itertools
 import numpy as np
 import pytest
 
-from h2viz.mapping.kernels import kernel_module
 from h2viz.mapping.meshing import ChunkedMesher, merge_chunks
 from h2viz.mapping.octree import VoxelOctree
 from h2viz.mapping.support import SUB, ObservedCells
+from tests.mapping.backends import FAST, needs_numba
 
 VS = 0.1
 CELL = VS / SUB
@@ -144,18 +144,17 @@ def test_cells_far_from_the_origin_are_marked_as_near_it() -> None:
 
 
 @pytest.mark.parametrize("with_strict", [False, True])
+@needs_numba
 def test_compiled_test_matches_the_dilation_reference(with_strict: bool) -> None:
     """The compiled point test (27-cell search with a voxel-neighbour cache) against `dilated_rows`, points in any
     order, inside and outside allocated voxels, with gaps where bits may only travel the reference's path."""
-    if kernel_module("support_numba") is None:
-        pytest.skip("numba is not installed")
     rng = np.random.default_rng(11 + with_strict)
     for origin in (np.zeros(3), np.array([-20_000.0, 15_000.0, -3.0])):
         octree, points = _octree(rng)
         points = points + origin
         octree = VoxelOctree(VS, min_points=0, expansion=False)
         octree.allocate(points)
-        observed = ObservedCells(VS)
+        observed = ObservedCells(VS, FAST)
         observed.add(octree, points.repeat(25, axis=0) + rng.normal(0.0, 0.03, size=(3000, 3)))
         strict = rng.random(octree.n_voxels) < 0.3 if with_strict else None
         support = observed.snapshot(octree, strict)

@@ -87,7 +87,8 @@ class FakeClock:
 
 
 def paced_source(tmp_path: Path, clock: FakeClock) -> RosbagSource:
-    src = source(write_bag(tmp_path / "b.bag", "ros1", FRAMES, K), realtime=True)
+    src = source(write_bag(tmp_path / "b.bag", "ros1", FRAMES, K))
+    src.cfg.realtime = True
     src.clock = clock  # type: ignore[method-assign]
     src.sleep = clock.sleep  # type: ignore[method-assign]
     return src

@@ -81,6 +81,13 @@ def test_scene_reaches_the_browser_and_grows(live: Live) -> None:
     page.get_by_role("tab", name="Mapping").click()
 
 
+def test_the_title_bar_shows_the_shipped_logo(live: Live) -> None:
+    logo = live.page.get_by_role("img", name="h2viz")
+    wait_until(live.page, lambda: logo.count() == 1, what="the logo in the title bar")
+    assert logo.get_attribute("src").startswith("data:image/svg+xml;base64,")  # inline: no request for it
+    assert logo.bounding_box()["height"] > 10  # laid out, not an empty placeholder
+
+
 def test_pause_and_resume_buttons_drive_the_worker(live: Live) -> None:
     page, slot = live.page, live.worker.slot
     page.get_by_role("button", name="Pause").click()
