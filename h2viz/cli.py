@@ -68,7 +68,14 @@ def cmd_map(args: argparse.Namespace) -> int:
     from h2viz.pipeline import run_map
 
     cfg = build_config(args)
-    result = run_map(cfg, resume=args.resume, gt_mesh=args.gt_mesh, progress=not args.quiet, realtime=args.realtime)
+    result = run_map(
+        cfg,
+        resume=args.resume,
+        gt_mesh=args.gt_mesh,
+        progress=not args.quiet,
+        realtime=args.realtime,
+        record=args.record,
+    )
     print(result.summary())
     return 0
 
@@ -137,6 +144,11 @@ def make_parser() -> argparse.ArgumentParser:
         "--realtime",
         action="store_true",
         help="play the source at its own frame rate and map the newest frame whenever the mapper is free",
+    )
+    p.add_argument(
+        "--record",
+        action="store_true",
+        help="also write a timeline recording (OUT/recording) for `h2viz replay` and `h2viz export-html`",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_map)
