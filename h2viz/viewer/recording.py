@@ -354,7 +354,6 @@ class Recording:
         )
 
 
-
 class BackgroundRecorder:
     """A Recorder fed from any thread: offered snapshots queue up and are written on a thread of their own, so
     that compressing a step never delays mapping."""
