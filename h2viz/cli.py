@@ -195,7 +195,9 @@ def make_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("export-html", help="write a recorded run as one HTML file that plays with no server")
     p.add_argument("run_dir", type=Path, help="a run folder written by `h2viz map --record`")
-    p.add_argument("--out", type=Path, default=None, help="output .html (or .viser) file (default RUN_DIR/recording.html)")
+    p.add_argument(
+        "--out", type=Path, default=None, help="output .html (or .viser) file (default RUN_DIR/recording.html)"
+    )
     p.add_argument("--fps", type=float, default=None, help="steps per second at 1x (default: the recording's)")
     p.set_defaults(func=cmd_export_html)
 
