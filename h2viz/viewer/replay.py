@@ -17,7 +17,8 @@ import viser
 
 from h2viz.viewer.layers import LayerSet
 from h2viz.viewer.recording import Recording
-from h2viz.viewer.server import initial_view, make_viser_server
+from h2viz.viewer.server import make_viser_server
+from h2viz.viewer.shapes import initial_view
 from h2viz.viewer.status import progress_markdown
 
 log = logging.getLogger("h2viz.replay")
