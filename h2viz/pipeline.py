@@ -38,6 +38,7 @@ class RunResult:
     skipped: int = 0
     dropped: int = 0  # real-time mode: frames that arrived while the mapper was busy
     refine_s: float = 0.0  # seconds of mapping.refine_iters steps after the last frame
+    record_s: float = 0.0  # seconds the recording cost the run (meshing every frame, handing over steps)
 
     def summary(self) -> str:
         line = f"mapped {len(self.stats)} frames ({self.skipped} skipped, {self.dropped} dropped)"
@@ -177,7 +178,8 @@ def run_map(
         write_metrics(metrics, out / "metrics.json")
     dropped = stream.dropped if stream is not None else 0
     _write_stats(out / "stats.json", stats, source, dropped, refine_s)
-    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s)
+    record_s = recorder.seconds if recorder is not None else 0.0
+    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s, record_s)
 
 
 def _recorder(mapper: Mapper, cfg: Config, out: Path, total: int) -> RunRecorder:

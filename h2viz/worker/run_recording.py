@@ -4,6 +4,7 @@ snapshots instead)."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -26,9 +27,11 @@ class RunRecorder:
         self.stats: list[FrameStats] = []
         self.poses: list[np.ndarray] = []
         self.current: RgbdFrame | None = None
+        self.seconds = 0.0  # spent meshing and handing over steps (the recording's cost to the run)
 
     def after_frame(self, frame: RgbdFrame, stats: FrameStats) -> None:
         """Mesh what the frame changed (for up to REFRESH_S more of the stalest chunks) and record the map."""
+        t0 = time.perf_counter()
         self.stats.append(stats)
         self.poses.append(frame.T_world_camera)
         self.current = frame
@@ -36,6 +39,7 @@ class RunRecorder:
         if job is not None:
             job.run()
         self.recorder.offer(self.snapshot(finished=False))
+        self.seconds += time.perf_counter() - t0
 
     def finish(self) -> Path:
         """Record the final map (every chunk re-meshed) as the last frame's step; returns the folder."""
