@@ -26,6 +26,35 @@ COMMAND_TIMEOUT_S = 600.0
 REFINE_STEPS = 500  # optimisation steps queued by one click of "Refine map" (20-40 s on a 2-core CPU)
 
 
+def build_layer_controls(gui: viser.GuiApi, L: LayerSet, points: bool = True) -> None:
+    """The Layers folder: a switch per layer, mesh opacity, octree levels (live dashboard and replay); `points`:
+    also the current frame's point cloud (recordings keep no depth)."""
+    with gui.add_folder("Layers"):
+        mesh = gui.add_checkbox("Mesh", L.mesh.enabled)
+        opacity = gui.add_slider("Mesh opacity", 0.1, 1.0, 0.05, L.mesh.opacity)
+        leaves = gui.add_checkbox("Octree leaves", L.octree.enabled and L.octree.leaves)
+        coarse = gui.add_slider("Coarser levels", 0, 3, 1, L.octree.coarse_levels if L.octree.enabled else 0)
+        keyframes = gui.add_checkbox("Keyframes", L.keyframes.enabled, hint="orange: selected, blue: covered")
+        trajectory = gui.add_checkbox("Trajectory", L.trajectory.enabled)
+        camera = gui.add_checkbox("Current camera", L.camera.enabled)
+        hint = "The current frame's depth points"
+        cloud = gui.add_checkbox("Point cloud", L.camera.points, hint=hint) if points else None
+    mesh.on_update(lambda _: L.mesh.set_enabled(mesh.value))
+    opacity.on_update(lambda _: L.mesh.set_opacity(opacity.value))
+    keyframes.on_update(lambda _: L.keyframes.set_enabled(keyframes.value))
+    trajectory.on_update(lambda _: L.trajectory.set_enabled(trajectory.value))
+    camera.on_update(lambda _: L.camera.set_enabled(camera.value))
+    if cloud is not None:
+        cloud.on_update(lambda _: L.camera.set_points(cloud.value))
+
+    def octree(_: Any) -> None:
+        L.octree.set_levels(leaves.value, int(coarse.value))
+        L.octree.set_enabled(leaves.value or coarse.value > 0)
+
+    leaves.on_update(octree)
+    coarse.on_update(octree)
+
+
 class Panels:
     """Builds the GUI on `server` and wires it to the worker, the layers and the render loop."""
 
@@ -77,33 +106,7 @@ class Panels:
         self.stride.on_update(lambda e: self._command(e, "set", stride=int(self.stride.value)))
 
     def _build_layers(self, gui: viser.GuiApi) -> None:
-        L = self.layers
-        with gui.add_folder("Layers"):
-            mesh = gui.add_checkbox("Mesh", L.mesh.enabled)
-            opacity = gui.add_slider("Mesh opacity", 0.1, 1.0, 0.05, L.mesh.opacity)
-            leaves = gui.add_checkbox("Octree leaves", L.octree.enabled and L.octree.leaves)
-            coarse = gui.add_slider(
-                "Coarser levels", 0, 3, 1, L.octree.coarse_levels if L.octree.enabled else 0
-            )
-            keyframes = gui.add_checkbox(
-                "Keyframes", L.keyframes.enabled, hint="orange: selected, blue: covered"
-            )
-            trajectory = gui.add_checkbox("Trajectory", L.trajectory.enabled)
-            camera = gui.add_checkbox("Current camera", L.camera.enabled)
-            points = gui.add_checkbox("Point cloud", L.camera.points, hint="The current frame's depth points")
-        mesh.on_update(lambda _: L.mesh.set_enabled(mesh.value))
-        opacity.on_update(lambda _: L.mesh.set_opacity(opacity.value))
-        keyframes.on_update(lambda _: L.keyframes.set_enabled(keyframes.value))
-        trajectory.on_update(lambda _: L.trajectory.set_enabled(trajectory.value))
-        camera.on_update(lambda _: L.camera.set_enabled(camera.value))
-        points.on_update(lambda _: L.camera.set_points(points.value))
-
-        def octree(_: Any) -> None:
-            L.octree.set_levels(leaves.value, int(coarse.value))
-            L.octree.set_enabled(leaves.value or coarse.value > 0)
-
-        leaves.on_update(octree)
-        coarse.on_update(octree)
+        build_layer_controls(gui, self.layers)
 
     def _build_novel_view(self, gui: viser.GuiApi) -> None:
         with gui.add_folder("Novel view"):

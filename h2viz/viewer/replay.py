@@ -16,6 +16,7 @@ import numpy as np
 import viser
 
 from h2viz.viewer.layers import LayerSet
+from h2viz.viewer.panels import build_layer_controls
 from h2viz.viewer.recording import Recording
 from h2viz.viewer.server import make_viser_server
 from h2viz.viewer.shapes import initial_view
@@ -48,6 +49,7 @@ class ReplaySession:
             self.forward = gui.add_button("Step forward", icon=viser.Icon.PLAYER_TRACK_NEXT)
             self.speed_dropdown = gui.add_dropdown("Speed", SPEEDS, initial_value="1x")
             self.progress = gui.add_markdown("")
+        build_layer_controls(gui, self.layers, points=False)
         self.play.on_click(lambda _: self.set_playing(not self.playing))
         self.slider.on_update(lambda _: self.show(int(self.slider.value) - 1))
         self.back.on_click(lambda _: self._nudge(-1))

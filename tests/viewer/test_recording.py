@@ -141,6 +141,10 @@ def test_scrubbing_shows_the_keyframes_of_that_step_in_each_browser(recorded: tu
             wait_until(pages[1], lambda: second.step == len(rec) - 1 and not second.playing, 30.0, "playback end")
             wait_until(pages[1], lambda: _keyframes_shown(wires[1]) == expected[-1], what="last step's keyframes")
             assert first.step == 5
+            assert not wires[0].names("LineSegmentsMessage", "/octree/")  # layer switches are per browser too
+            pages[0].get_by_role("checkbox", name="Octree leaves").check()
+            wait_until(pages[0], lambda: wires[0].names("LineSegmentsMessage", "/octree/"), what="octree lines")
+            assert not wires[1].names("LineSegmentsMessage", "/octree/")
             browser.close()
     finally:
         replay.stop()
