@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
+import os
 import queue
 import threading
 import zipfile
@@ -23,6 +25,7 @@ from h2viz.errors import H2vizError
 from h2viz.types import FrameStats, KeyframeInfo, KeyframeState, MapSnapshot, MeshChunk, RgbdFrame
 from h2viz.viewer.diff import Key, diff_chunks
 
+log = logging.getLogger("h2viz.recording")
 FORMAT = "h2viz-recording"
 VERSION = 1
 META = "recording.json"
@@ -111,8 +114,11 @@ class Recorder:
     def _write(self, snap: MapSnapshot) -> None:
         arrays = self._changes(snap)
         path = self.folder / "steps" / f"{self.steps:06d}.npz"
+        partial = path.with_name(path.name + ".partial")  # renamed once whole: a crash leaves no half step
         try:
-            np.savez_compressed(path, **arrays)
+            with open(partial, "wb") as f:
+                np.savez_compressed(f, **arrays)
+            os.replace(partial, path)
         except OSError as e:
             raise RecordingError(f"cannot write {path}: {e}; free some disk space or record elsewhere") from e
         self.bytes_written += path.stat().st_size
@@ -294,7 +300,18 @@ class Recording:
         files = sorted((self.folder / "steps").glob("*.npz"))
         if not files:
             raise RecordingError(f"{self.folder}: the recording has no steps yet (map at least one frame)")
-        self.steps = [read_step(f) for f in files]
+        self.steps: list[Step] = []
+        self.problem = ""  # why the recording ends before its last file, if it does
+        for f in files:
+            try:
+                self.steps.append(read_step(f))
+            except RecordingError as e:
+                if not self.steps:
+                    raise
+                self.problem = f"replaying the {len(self.steps)} steps before it: {e}"
+                log.warning("%s", self.problem)
+                files = files[: len(self.steps)]
+                break
         self.fps = float(self.meta.get("fps", 10.0))
         self.bytes = sum(f.stat().st_size for f in files)
         self._keyframe_info: dict[int, KeyframeInfo] = {}

@@ -75,7 +75,8 @@ class ReplaySession:
             with self.client.atomic():
                 self.layers.update(snap)
             self.step = k
-            self.progress.content = f"**Step {k + 1} / {len(self.recording)}**\n\n{progress_markdown(snap)}"
+            note = f"\n\n*{self.recording.problem}*" if self.recording.problem else ""
+            self.progress.content = f"**Step {k + 1} / {len(self.recording)}**{note}\n\n{progress_markdown(snap)}"
             if int(self.slider.value) != k + 1:
                 self.slider.value = k + 1
 

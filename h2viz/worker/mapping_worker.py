@@ -153,7 +153,8 @@ class MappingWorker(CommandServing):
     @property
     def errors(self) -> tuple[str, ...]:
         """Messages of every mapping or meshing failure so far (mapping ones first, each oldest first)."""
-        return tuple(self._errors + self.meshing.errors)
+        recorder = self._recorder
+        return tuple(self._errors + self.meshing.errors + (recorder.errors if recorder is not None else []))
 
     @property
     def alive(self) -> bool:

@@ -6,6 +6,7 @@ file:// with the network blocked, and no torch anywhere in replay."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -96,6 +97,12 @@ def test_a_damaged_step_or_missing_recording_names_the_file(
     (broken / "steps" / "000000.npz").write_bytes(b"not a zip")
     with pytest.raises(RecordingError, match="000000.npz: damaged"):
         Recording(tmp_path)
+    # a damaged later step: the steps before it still replay, and the problem names it
+    shutil.copytree(recorded[0] / "recording", tmp_path / "copy" / "recording")
+    (tmp_path / "copy" / "recording" / "steps" / "000005.npz").write_bytes(b"PK broken")
+    rec = Recording(tmp_path / "copy")
+    assert len(rec) == 5 and "000005.npz: damaged" in rec.problem
+    assert rec.snapshot(4).frames_done == 5
 
 
 def test_replay_imports_no_torch(recorded: tuple[Path, MappingWorker]) -> None:
