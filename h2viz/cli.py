@@ -70,7 +70,14 @@ def cmd_map(args: argparse.Namespace) -> int:
     from h2viz.pipeline import run_map
 
     cfg = build_config(args)
-    result = run_map(cfg, args.resume, args.gt_mesh, progress=not args.quiet, realtime=cfg.source.realtime)
+    result = run_map(
+        cfg,
+        resume=args.resume,
+        gt_mesh=args.gt_mesh,
+        progress=not args.quiet,
+        realtime=cfg.source.realtime,
+        record=args.record,
+    )
     print(result.summary())
     return 0
 
@@ -79,6 +86,34 @@ def cmd_view(args: argparse.Namespace) -> int:
     from h2viz.viewer.server import run_view
 
     run_view(build_config(args), on_ready=lambda url: print(f"h2viz dashboard: {url}  (Ctrl-C to stop)", flush=True))
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from h2viz.viewer.replay import run_replay
+
+    run_replay(
+        args.run_dir,
+        args.host,
+        args.port,
+        on_ready=lambda url: print(f"h2viz replay: {url}  (Ctrl-C to stop)", flush=True),
+    )
+    return 0
+
+
+def cmd_export_html(args: argparse.Namespace) -> int:
+    from h2viz.viewer.html_export import export_html
+
+    out = export_html(args.run_dir, args.out, args.fps)
+    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB)")
+    return 0
+
+
+def cmd_render_path(args: argparse.Namespace) -> int:
+    from h2viz.render_path import render_run_path
+
+    out = render_run_path(args.run_dir, args.path, args.out, args.width, args.height, progress=not args.quiet)
+    print(f"wrote {out}")
     return 0
 
 
@@ -141,6 +176,11 @@ def make_parser() -> argparse.ArgumentParser:
         help="play the source at its own frame rate and map the newest frame whenever the mapper is free "
         "(source.realtime)",
     )
+    p.add_argument(
+        "--record",
+        action="store_true",
+        help="also write a timeline recording (OUT/recording) for `h2viz replay` and `h2viz export-html`",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_map)
 
@@ -150,6 +190,29 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=None, help="port (default 8080)")
     p.add_argument("--realtime", action="store_true", help="start in real-time mode (source.realtime)")
     p.set_defaults(func=cmd_view)
+
+    p = sub.add_parser("replay", help="serve a recorded run: play, pause, scrub, step, speed (no mapping)")
+    p.add_argument("run_dir", type=Path, help="a run folder written by `h2viz map --record` (or its recording/)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("export-html", help="write a recorded run as one HTML file that plays with no server")
+    p.add_argument("run_dir", type=Path, help="a run folder written by `h2viz map --record`")
+    p.add_argument(
+        "--out", type=Path, default=None, help="output .html (or .viser) file (default RUN_DIR/recording.html)"
+    )
+    p.add_argument("--fps", type=float, default=None, help="steps per second at 1x (default: the recording's)")
+    p.set_defaults(func=cmd_export_html)
+
+    p = sub.add_parser("render-path", help="render a camera path JSON from a run's map to MP4")
+    p.add_argument("run_dir", type=Path, help="a run folder with checkpoint.pt and config.yaml")
+    p.add_argument("path", type=Path, help="camera path JSON (the dashboard's Save path writes one)")
+    p.add_argument("--out", type=Path, default=None, help="output .mp4 (default: next to the path file)")
+    p.add_argument("--width", type=int, default=None, help="video width (default: the path's)")
+    p.add_argument("--height", type=int, default=None, help="video height (default: the path's)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_render_path)
 
     p = sub.add_parser("eval", help="Acc / Comp / Comp ratio of a mesh against ground truth")
     p.add_argument("--mesh", required=True, help="reconstructed mesh (PLY/OBJ/GLB)")

@@ -313,6 +313,12 @@ class ViewerConfig:
     and an eighth of the field evaluations of mapping.mesh_resolution = 8, which mesh downloads use)."""
     start_paused: bool = False
     """Open with mapping paused."""
+    record_fps: float = 10.0
+    """Recorded steps (mapped frames) per second of replay at 1x speed, and of exported HTML."""
+    video_width: int = 640
+    """Width of fly-through videos rendered from the map (the height follows the camera's aspect)."""
+    video_fps: int = 30
+    """Frames per second of fly-through videos."""
 
 
 @dataclass

@@ -25,6 +25,7 @@ from h2viz.mapping.mapper import Mapper
 from h2viz.sources.base import FrameSource, make_source
 from h2viz.types import FrameStats, RgbdFrame
 from h2viz.worker.feed import END, FrameFeed, WorkerSettings
+from h2viz.worker.run_recording import RunRecorder
 
 log = logging.getLogger("h2viz.map")
 
@@ -37,6 +38,7 @@ class RunResult:
     skipped: int = 0
     dropped: int = 0  # real-time mode: frames that arrived while the mapper was busy
     refine_s: float = 0.0  # seconds of mapping.refine_iters steps after the last frame
+    record_s: float = 0.0  # seconds the recording cost the run (meshing every frame, handing over steps)
 
     def summary(self) -> str:
         line = f"mapped {len(self.stats)} frames ({self.skipped} skipped, {self.dropped} dropped)"
@@ -135,9 +137,10 @@ def run_map(
     gt_mesh: Path | None = None,
     progress: bool = True,
     realtime: bool = False,
+    record: bool = False,
 ) -> RunResult:
     """Map every frame of the configured source (or, in real-time mode, the newest frame whenever the mapper is
-    free) and write the run's outputs."""
+    free) and write the run's outputs; with `record`, also a timeline recording of the run in out/recording."""
     source = make_source(cfg.source)
     out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
@@ -149,6 +152,7 @@ def run_map(
     stats: list[FrameStats] = []
     bar = tqdm(total=total, disable=not progress, unit="frame", dynamic_ncols=True)
     stream = RealtimeStream(source, cfg) if realtime else None
+    recorder = _recorder(mapper, cfg, out, total) if record else None
     for position, frame in stream if stream is not None else enumerate(source):
         bar.update(position + 1 + (stream.dropped if stream is not None else 0) - bar.n)  # frames read so far
         eval_frames.add(position, frame)
@@ -156,10 +160,15 @@ def run_map(
             continue
         s = mapper.integrate(frame)
         stats.append(s)
+        if recorder is not None:
+            recorder.after_frame(frame, s)
         last_index = frame.index
         bar.set_postfix(t=f"{s.map_time_s:.2f}s", it=s.iterations, vox=s.n_voxels, kf=s.n_keyframes)
     bar.close()
     refine_s = _refine(mapper, cfg.mapping.refine_iters, progress)
+    if recorder is not None:
+        recorder.finish()
+        mapper.mesh_resolution = cfg.mapping.mesh_resolution  # the written mesh at its own resolution
     mapper.update_mesh()
     mesh = mapper.mesh()
     mapper.export_mesh(out / "mesh.ply")
@@ -169,7 +178,14 @@ def run_map(
         write_metrics(metrics, out / "metrics.json")
     dropped = stream.dropped if stream is not None else 0
     _write_stats(out / "stats.json", stats, source, dropped, refine_s)
-    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s)
+    record_s = recorder.seconds if recorder is not None else 0.0
+    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s, record_s)
+
+
+def _recorder(mapper: Mapper, cfg: Config, out: Path, total: int) -> RunRecorder:
+    """A recorder of this run into out/recording, meshing at the live dashboard's resolution."""
+    mapper.mesh_resolution = cfg.viewer.live_mesh_resolution
+    return RunRecorder(mapper, out / "recording", total, cfg.viewer.record_fps)
 
 
 def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:

@@ -101,7 +101,9 @@ def _compiled() -> tuple[TensorKernels, ArrayKernels] | None:
         frame_numba, band, hash_numba, prior_numba, decoder_numba, loss_numba, optim_numba, color_prior_numba,
         fine_prior_numba,
     )  # fmt: skip
-    arrays = ArrayKernels(raymarch, surface, marching_numba, support_numba, prior_numba, decoder_numba, fine_prior_numba)
+    arrays = ArrayKernels(
+        raymarch, surface, marching_numba, support_numba, prior_numba, decoder_numba, fine_prior_numba
+    )
     return tensors, arrays
 
 

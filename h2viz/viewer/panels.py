@@ -14,14 +14,45 @@ import viser
 
 from h2viz.config import Config
 from h2viz.types import MapSnapshot
+from h2viz.viewer.comforts import CameraComforts
+from h2viz.viewer.flythrough import FlythroughPanel
 from h2viz.viewer.layers import LayerSet
 from h2viz.viewer.render_loop import MODES, RenderLoop, render_png
-from h2viz.viewer.status import StatusPanels
+from h2viz.viewer.status import StatusPanels, notify
 from h2viz.worker import MappingWorker
 
 log = logging.getLogger("h2viz.viewer")
 COMMAND_TIMEOUT_S = 600.0
 REFINE_STEPS = 500  # optimisation steps queued by one click of "Refine map" (20-40 s on a 2-core CPU)
+
+
+def build_layer_controls(gui: viser.GuiApi, L: LayerSet, points: bool = True) -> None:
+    """The Layers folder: a switch per layer, mesh opacity, octree levels (live dashboard and replay); `points`:
+    also the current frame's point cloud (recordings keep no depth)."""
+    with gui.add_folder("Layers"):
+        mesh = gui.add_checkbox("Mesh", L.mesh.enabled)
+        opacity = gui.add_slider("Mesh opacity", 0.1, 1.0, 0.05, L.mesh.opacity)
+        leaves = gui.add_checkbox("Octree leaves", L.octree.enabled and L.octree.leaves)
+        coarse = gui.add_slider("Coarser levels", 0, 3, 1, L.octree.coarse_levels if L.octree.enabled else 0)
+        keyframes = gui.add_checkbox("Keyframes", L.keyframes.enabled, hint="orange: selected, blue: covered")
+        trajectory = gui.add_checkbox("Trajectory", L.trajectory.enabled)
+        camera = gui.add_checkbox("Current camera", L.camera.enabled)
+        hint = "The current frame's depth points"
+        cloud = gui.add_checkbox("Point cloud", L.camera.points, hint=hint) if points else None
+    mesh.on_update(lambda _: L.mesh.set_enabled(mesh.value))
+    opacity.on_update(lambda _: L.mesh.set_opacity(opacity.value))
+    keyframes.on_update(lambda _: L.keyframes.set_enabled(keyframes.value))
+    trajectory.on_update(lambda _: L.trajectory.set_enabled(trajectory.value))
+    camera.on_update(lambda _: L.camera.set_enabled(camera.value))
+    if cloud is not None:
+        cloud.on_update(lambda _: L.camera.set_points(cloud.value))
+
+    def octree(_: Any) -> None:
+        L.octree.set_levels(leaves.value, int(coarse.value))
+        L.octree.set_enabled(leaves.value or coarse.value > 0)
+
+    leaves.on_update(octree)
+    coarse.on_update(octree)
 
 
 class Panels:
@@ -46,8 +77,12 @@ class Panels:
         with tabs.add_tab("View", icon=viser.Icon.EYE):
             self._build_layers(gui)
             self._build_novel_view(gui)
+            self.comforts = CameraComforts(server, worker)
         with tabs.add_tab("Export", icon=viser.Icon.DOWNLOAD):
             self._build_export(gui)
+            self._build_recording(gui)
+            v = cfg.viewer
+            self.flythrough = FlythroughPanel(server, worker, self.out_dir, v.video_width, v.video_fps)
             self._build_settings(gui)
 
     # -- building ------------------------------------------------------------------------------
@@ -71,33 +106,7 @@ class Panels:
         self.stride.on_update(lambda e: self._command(e, "set", stride=int(self.stride.value)))
 
     def _build_layers(self, gui: viser.GuiApi) -> None:
-        L = self.layers
-        with gui.add_folder("Layers"):
-            mesh = gui.add_checkbox("Mesh", L.mesh.enabled)
-            opacity = gui.add_slider("Mesh opacity", 0.1, 1.0, 0.05, L.mesh.opacity)
-            leaves = gui.add_checkbox("Octree leaves", L.octree.enabled and L.octree.leaves)
-            coarse = gui.add_slider(
-                "Coarser levels", 0, 3, 1, L.octree.coarse_levels if L.octree.enabled else 0
-            )
-            keyframes = gui.add_checkbox(
-                "Keyframes", L.keyframes.enabled, hint="orange: selected, blue: covered"
-            )
-            trajectory = gui.add_checkbox("Trajectory", L.trajectory.enabled)
-            camera = gui.add_checkbox("Current camera", L.camera.enabled)
-            points = gui.add_checkbox("Point cloud", L.camera.points, hint="The current frame's depth points")
-        mesh.on_update(lambda _: L.mesh.set_enabled(mesh.value))
-        opacity.on_update(lambda _: L.mesh.set_opacity(opacity.value))
-        keyframes.on_update(lambda _: L.keyframes.set_enabled(keyframes.value))
-        trajectory.on_update(lambda _: L.trajectory.set_enabled(trajectory.value))
-        camera.on_update(lambda _: L.camera.set_enabled(camera.value))
-        points.on_update(lambda _: L.camera.set_points(points.value))
-
-        def octree(_: Any) -> None:
-            L.octree.set_levels(leaves.value, int(coarse.value))
-            L.octree.set_enabled(leaves.value or coarse.value > 0)
-
-        leaves.on_update(octree)
-        coarse.on_update(octree)
+        build_layer_controls(gui, self.layers)
 
     def _build_novel_view(self, gui: viser.GuiApi) -> None:
         with gui.add_folder("Novel view"):
@@ -129,6 +138,48 @@ class Panels:
         glb.on_click(lambda e: self._download(e, "glb"))
         save.on_click(self._save)
 
+    def _build_recording(self, gui: viser.GuiApi) -> None:
+        with gui.add_folder("Recording"):
+            self.record = gui.add_checkbox(
+                "Record", self.worker.recording is not None, hint=f"One step per mapped frame, into {self.out_dir}/"
+            )
+            self.export_html = gui.add_button(
+                "Download recording (HTML)",
+                icon=viser.Icon.FILE_CODE,
+                hint="One file that plays the recording in any browser, no server needed (ends the recording)",
+            )
+        self.record.on_update(self._toggle_record)
+        self.export_html.on_click(self._download_html)
+        self.recorded: Path | None = None  # the last finished recording
+
+    def _toggle_record(self, event: Any) -> None:
+        if self.record.value:
+            folder = self.out_dir / f"run-{time.strftime('%Y%m%d-%H%M%S')}" / "recording"
+            notify(event, "Recording", f"into {self.worker.start_recording(folder, self.cfg.viewer.record_fps)}")
+        else:
+            self.recorded = self.worker.stop_recording() or self.recorded
+            if self.recorded is not None:
+                notify(event, "Recording saved", f"{self.recorded}: replay it with `h2viz replay`")
+
+    def _download_html(self, event: Any) -> None:
+        from h2viz.viewer.html_export import export_html
+
+        if self.worker.recording is not None:
+            self.recorded = self.worker.stop_recording() or self.recorded
+            self.record.value = False
+        if self.recorded is None or event.client is None:
+            notify(event, "Nothing recorded", "Switch Record on while mapping first", error=True)
+            return
+        note = event.client.add_notification("Preparing download", "HTML...", loading=True, with_close_button=False)
+        try:
+            out = export_html(self.recorded, self.recorded.parent / "recording.html")
+            event.client.send_file_download(out.name, out.read_bytes(), save_immediately=True)
+        except Exception as e:
+            log.warning("HTML export failed: %s", e)
+            notify(event, "Export failed", str(e), error=True)
+        finally:
+            note.remove()
+
     def _build_settings(self, gui: viser.GuiApi) -> None:
         s = self.worker.settings
         with gui.add_folder("Settings"):
@@ -156,7 +207,7 @@ class Panels:
             return self.worker.submit(kind, **args).result(timeout=COMMAND_TIMEOUT_S)
         except Exception as e:
             log.warning("%s failed: %s", kind, e)
-            _notify(event, f"{kind} failed", str(e), error=True)
+            notify(event, f"{kind} failed", str(e), error=True)
             return None
 
     def _download(self, event: Any, what: str) -> None:
@@ -178,7 +229,7 @@ class Panels:
             )
         except Exception as e:
             log.warning("download of %s failed: %s", what, e)
-            _notify(event, "Download failed", str(e), error=True)
+            notify(event, "Download failed", str(e), error=True)
         finally:
             note.remove()
 
@@ -186,7 +237,7 @@ class Panels:
         path = self.out_dir / f"checkpoint_{time.strftime('%Y%m%d-%H%M%S')}.pt"
         saved = self._command(event, "save", path=str(path))
         if saved is not None:
-            _notify(event, "Checkpoint saved", str(saved))
+            notify(event, "Checkpoint saved", str(saved))
 
     # -- refresh -------------------------------------------------------------------------------
     def update(self, snap: MapSnapshot) -> None:
@@ -194,9 +245,5 @@ class Panels:
         self.resume.disabled = not snap.paused or snap.finished
         self.step.disabled = snap.finished
         self.status.update(snap)
+        self.comforts.update(snap)
 
-
-def _notify(event: Any, title: str, body: str, error: bool = False) -> None:
-    client = getattr(event, "client", None)
-    if client is not None:
-        client.add_notification(title, body, auto_close_seconds=8.0, color="red" if error else "green")

@@ -26,6 +26,7 @@ from h2viz.types import MapSnapshot
 from h2viz.viewer.layers import LayerSet
 from h2viz.viewer.panels import Panels
 from h2viz.viewer.render_loop import RenderLoop
+from h2viz.viewer.shapes import initial_view
 from h2viz.worker import MappingWorker
 
 log = logging.getLogger("h2viz.viewer")
@@ -69,18 +70,6 @@ def make_viser_server(host: str, port: int, label: str = "h2viz") -> LocalViserS
     server.scene.configure_default_lights(cast_shadow=False)
     server.scene.add_light_hemisphere("/lights/sky", sky_color=(255, 255, 255), ground_color=(110, 110, 120))
     return server
-
-
-def initial_view(T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(up, eye, target) for a first look at a scene from behind and above its first camera."""
-    up = -T_world_camera[:3, 1]
-    axis = int(np.argmax(np.abs(up)))
-    if abs(up[axis]) > 0.85:  # snap to the world axis the camera is nearly level with
-        up = np.sign(up[axis]) * np.eye(3)[axis]
-    forward = T_world_camera[:3, 2] - up * float(T_world_camera[:3, 2] @ up)
-    forward = forward / max(float(np.linalg.norm(forward)), 1e-6)
-    position = T_world_camera[:3, 3]
-    return up, position - 1.5 * forward + 1.2 * up, position + 1.0 * forward
 
 
 class Dashboard:
@@ -166,6 +155,7 @@ class Dashboard:
 
     def _set_initial_view(self, T_world_camera: np.ndarray) -> None:
         up, eye, target = initial_view(T_world_camera)
+        self.panels.comforts.up = up
         self.server.scene.set_up_direction(up)
         self.server.initial_camera.up = up
         self.server.initial_camera.position = eye

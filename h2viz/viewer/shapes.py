@@ -64,6 +64,18 @@ def pose_from_wxyz(wxyz: np.ndarray, position: np.ndarray) -> np.ndarray:
     return T
 
 
+def initial_view(T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(up, eye, target) for a first look at a scene from behind and above its first camera."""
+    up = -T_world_camera[:3, 1]
+    axis = int(np.argmax(np.abs(up)))
+    if abs(up[axis]) > 0.85:  # snap to the world axis the camera is nearly level with
+        up = np.sign(up[axis]) * np.eye(3)[axis]
+    forward = T_world_camera[:3, 2] - up * float(T_world_camera[:3, 2] @ up)
+    forward = forward / max(float(np.linalg.norm(forward)), 1e-6)
+    position = T_world_camera[:3, 3]
+    return up, position - 1.5 * forward + 1.2 * up, position + 1.0 * forward
+
+
 def view_intrinsics(fov_y_rad: float, width: int, height: int) -> np.ndarray:
     """Pinhole K (3,3) with square pixels for a vertical field of view and an image size."""
     f = 0.5 * height / np.tan(0.5 * fov_y_rad)

@@ -3,6 +3,8 @@ terms and per-frame time, the current input images, metrics against ground truth
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import viser
 import viser.uplot as uplot
@@ -139,3 +141,10 @@ class StatusPanels:
         if self.loss_plot is not None:
             self.loss_plot.data = losses
         self.time_plot.data = times
+
+
+def notify(event: Any, title: str, body: str, error: bool = False) -> None:
+    """A notification to the browser that caused a GUI event (green, or red for an error)."""
+    client = getattr(event, "client", None)
+    if client is not None:
+        client.add_notification(title, body, auto_close_seconds=8.0, color="red" if error else "green")

@@ -86,6 +86,7 @@ class MappingWorker(CommandServing):
         self._chunks_out: dict = {}  # the chunks snapshots carry (changed only by the mesh thread's publish)
         self._last_snap: MapSnapshot | None = None
         self.meshing = MeshThread(self._publish_mesh, lambda: self.settings.mesh_update_hz)
+        self._recorder: Any = None  # a BackgroundRecorder while the run is recorded
         self._gt: Any = None
         self._fatal: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="h2viz-mapping", daemon=True)
@@ -102,6 +103,7 @@ class MappingWorker(CommandServing):
         if self._thread.is_alive():
             self._thread.join(timeout=timeout_s)
         self.meshing.stop(timeout_s)
+        self.stop_recording()
         self._fail_pending(H2vizError("the mapping worker stopped before serving this request"))
 
     def submit(self, kind: str, **args: Any) -> Future[Any]:
@@ -121,13 +123,38 @@ class MappingWorker(CommandServing):
 
     @property
     def live(self) -> bool:
-        """The live mesh and metrics are kept up to date while mapping (someone watches, or nobody said)."""
-        return self._viewers is None or self._viewers > 0
+        """The live mesh and metrics are kept up to date while mapping (someone watches, nobody said, or the run
+        is recorded)."""
+        return self._viewers is None or self._viewers > 0 or self._recorder is not None
+
+    @property
+    def recording(self) -> Path | None:
+        """The folder being recorded into, or None."""
+        return None if self._recorder is None else self._recorder.folder
+
+    def start_recording(self, folder: str | Path, fps: float = 10.0) -> Path:
+        """Record one step per mapped frame from now on into `folder` (see h2viz.viewer.recording)."""
+        from h2viz.viewer.recording import BackgroundRecorder, Recorder
+
+        with self._publish_lock:
+            if self._recorder is not None:
+                return self._recorder.folder
+            self._recorder = BackgroundRecorder(Recorder(Path(folder), fps))
+            if self._last_snap is not None:
+                self._recorder.offer(self._last_snap)
+        return Path(folder)
+
+    def stop_recording(self) -> Path | None:
+        """Finish the recording (its last step is the newest snapshot); returns its folder."""
+        with self._publish_lock:
+            recorder, self._recorder = self._recorder, None
+        return None if recorder is None else recorder.close()
 
     @property
     def errors(self) -> tuple[str, ...]:
         """Messages of every mapping or meshing failure so far (mapping ones first, each oldest first)."""
-        return tuple(self._errors + self.meshing.errors)
+        recorder = self._recorder
+        return tuple(self._errors + self.meshing.errors + (recorder.errors if recorder is not None else []))
 
     @property
     def alive(self) -> bool:
@@ -310,6 +337,8 @@ class MappingWorker(CommandServing):
             )
             self._last_snap = snap
             self.slot.put(snap)
+            if self._recorder is not None:
+                self._recorder.offer(snap)
 
     def _publish_mesh(self) -> None:
         """(mesh thread) The last snapshot again with the mapper's current chunks."""
@@ -320,3 +349,5 @@ class MappingWorker(CommandServing):
             self._version += 1
             self._last_snap = replace(self._last_snap, version=self._version, chunks=self._chunks_out)
             self.slot.put(self._last_snap)
+            if self._recorder is not None:
+                self._recorder.offer(self._last_snap)
