@@ -146,6 +146,9 @@ class MappingConfig:
     fine_priors: bool = False
     """Also fuse every frame's truncated projective SDF into a 1.25 cm lattice in each voxel (at 10 cm voxels;
     h2viz.mapping.fine_prior), which replaces the corner priors wherever frames reached it."""
+    fine_prior_residual: bool = True
+    """With fine priors, the hash-grid residual corrects them too (false: it corrects only the corner priors, where
+    no frame reached the fine lattice)."""
     hash_levels: int = 4
     """L: number of hash-grid levels."""
     hash_features: int = 2

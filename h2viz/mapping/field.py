@@ -82,6 +82,7 @@ class HybridField(nn.Module):
         self.color_prior = ColorPrior(cfg.voxel_size_m, backend=backend) if cfg.color_prior else None
         fine = cfg.fine_priors and cfg.priors
         self.fine_prior = FinePrior(cfg.voxel_size_m, cfg.truncation_m, backend=backend) if fine else None
+        self.fine_residual = cfg.fine_prior_residual  # the residual also corrects the fine prior
         self.octree: VoxelOctree | None = None  # where the colour prior looks points up (set by sync)
         self.priors = torch.zeros(0)  # (C,) corner SDF in tr units, grows with the octree
         self.corner_ids = torch.zeros(0, 8, dtype=torch.long)  # (V,8)
@@ -113,11 +114,18 @@ class HybridField(nn.Module):
     def prior_sdf(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
         """Prior SDF (N,) at points (N,3) in voxels (N,): the fine lattice's blend where frames reached it, the
         corner priors' trilinear interpolation elsewhere (gradients reach the corner priors by their share)."""
+        return self.prior_parts(points, voxel)[0]
+
+    def prior_parts(self, points: torch.Tensor, voxel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The prior SDF (N,) and the residual's weight (N,) at points (N,3) in voxels (N,): the share of the
+        prior the corner priors make up when the residual corrects only those (mapping.fine_prior_residual off),
+        else None (weight 1 everywhere)."""
         coarse = self.corner_prior(points, voxel)
         if self.fine_prior is None:
-            return coarse
+            return coarse, None
         value, cover = self.fine_prior.blend(self.voxel_origin, points, voxel)  # (N,), (N,)
-        return value.to(coarse.device) + (1.0 - cover.to(coarse.device)) * coarse
+        rest = 1.0 - cover.to(coarse.device)
+        return value.to(coarse.device) + rest * coarse, None if self.fine_residual else rest
 
     def corner_prior(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
         """Trilinear interpolation of the 8 corner priors of each point's voxel: (N,3), (N,) -> (N,)."""
@@ -142,9 +150,10 @@ class HybridField(nn.Module):
 
     def sdf(self, points: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
         """Signed distance in truncation units (N,) at points (N,3) lying in voxels (N,)."""
-        s = self.prior_sdf(points, voxel)
+        s, weight = self.prior_parts(points, voxel)
         if self.use_residual:
-            s = s + self.residual(self.geo_grid(points))[:, 0]
+            residual = self.residual(self.geo_grid(points))[:, 0]
+            s = s + (residual if weight is None else residual * weight)
         return s
 
     def residual(self, features: torch.Tensor) -> torch.Tensor:

@@ -66,26 +66,32 @@ class FrozenField:
 
     def prior(self, points: np.ndarray, voxel_ids: np.ndarray) -> np.ndarray:
         """Prior SDF in truncation units (N,) float32 at points (N,3) in (or on the faces of) voxels (N,)."""
+        return self._prior_parts(points, voxel_ids)[0]
+
+    def _prior_parts(self, points: np.ndarray, voxel_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The prior (N,) and the residual's weight (N,) or None (1), as `HybridField.prior_parts`."""
         pts = np.ascontiguousarray(points, dtype=np.float32)
         vox = np.ascontiguousarray(voxel_ids, dtype=np.int64)
         if self.kernels is None:
             p, v = torch.from_numpy(pts).to(self.device), torch.from_numpy(vox).to(self.device)
             with torch.no_grad():
-                return self.field.prior_sdf(p, v).cpu().numpy().astype(np.float32)
+                prior, weight = self.field.prior_parts(p, v)
+            return prior.cpu().numpy().astype(np.float32), None if weight is None else weight.cpu().numpy()
         out = np.empty(len(points), dtype=np.float32)
         inv_vs = 1.0 / self.field.voxel_size_m
         blend = self.kernels.prior.blend_range
         blend(pts, vox, self._origin, self._corner_ids, self._priors, inv_vs, 0, len(pts), out)
-        if self.field.fine_prior is not None:
-            value, cover = self.field.fine_prior.blend_numpy(self._origin, pts, vox)
-            out = value + (np.float32(1.0) - cover) * out
-        return out
+        if self.field.fine_prior is None:
+            return out, None
+        value, cover = self.field.fine_prior.blend_numpy(self._origin, pts, vox)
+        rest = np.float32(1.0) - cover
+        return value + rest * out, None if self.field.fine_residual else rest
 
     @torch.no_grad()
     def sdf_m(self, points: np.ndarray, voxel_ids: np.ndarray) -> np.ndarray:
         """SDF in metres (N,) float32 at points (N,3) lying in (or on the faces of) voxels `voxel_ids` (N,), with
         the prior's sign beyond `prior_band` (see `keep_prior_sign`)."""
-        prior = self.prior(points, voxel_ids)
+        prior, weight = self._prior_parts(points, voxel_ids)
         out = prior.copy()
         if self.field.use_residual:
             for i in range(0, len(points), FIELD_BATCH):
@@ -97,7 +103,8 @@ class FrozenField:
                     residual = np.empty((feats.shape[0], 1), np.float32)
                     decode = self.kernels.decoder.decode_range
                     decode(feats.contiguous().numpy(), *self._decoder, 0, feats.shape[0], residual)
-                out[i : i + FIELD_BATCH] += self.field.bound(torch.from_numpy(residual))[:, 0].numpy()
+                r = self.field.bound(torch.from_numpy(residual))[:, 0].numpy()
+                out[i : i + FIELD_BATCH] += r if weight is None else r * weight[i : i + FIELD_BATCH]
         if self.prior_band > 0:
             out = keep_prior_sign(out, prior, self.prior_band)
         return out * np.float32(self.truncation_m)

@@ -102,17 +102,19 @@ class LatticeSearch:
         while (idx := self.propose()).size:
             points = self.points(idx).to(device)
             residual = residual_sdf(self.field, points).float().cpu().numpy()
-            self.sdf[idx] = self._prior(points, idx) + residual
+            prior, weight = self._prior(points, idx)
+            self.sdf[idx] = prior + (residual if weight is None else residual * weight)
         return self
 
-    def _prior(self, points: torch.Tensor, idx: np.ndarray) -> np.ndarray:
-        """The prior SDF (n,) at lattice samples idx (n,): the walk's corner prior, or the field's own where it
-        has fine priors that the walk does not see."""
+    def _prior(self, points: torch.Tensor, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The prior SDF (n,) at lattice samples idx (n,) and the residual's weight (n,) or None (1): the walk's
+        corner prior, or the field's own where it has fine priors that the walk does not see."""
         if self.field.fine_prior is None:
-            return self.lat.prior[idx]
+            return self.lat.prior[idx], None
         voxel = torch.from_numpy(self.lat.voxel[idx]).to(points.device)
         with torch.no_grad():
-            return self.field.prior_sdf(points, voxel).float().cpu().numpy()
+            prior, weight = self.field.prior_parts(points, voxel)
+        return prior.float().cpu().numpy(), None if weight is None else weight.float().cpu().numpy()
 
     def samples(self, keep_ray: np.ndarray | None) -> tuple[np.ndarray, ...]:
         """The evaluated samples of the rays with keep_ray (R,) True (all when None), ray-major:

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pytest
 import torch
 
 from h2viz.geometry import look_at
@@ -68,12 +69,13 @@ class PoleScene(Scene):
         return np.minimum(t_floor, t_pole)
 
 
-def test_a_thin_pole_keeps_its_width_from_a_held_out_camera() -> None:
+@pytest.mark.parametrize("fine", [True, False], ids=["fine-priors", "corner-priors"])
+def test_a_thin_pole_keeps_its_width_from_a_held_out_camera(fine: bool) -> None:
     scene = PoleScene("plane")
     target = np.array([0.0, 0.0, 0.1])
     cams = orbit(scene, 12, 0.7, 0.9, target)
     held_out = cams.pop(3)
-    mapper = Mapper(small_cfg(max_iters=10, rays_per_iter=2048))
+    mapper = Mapper(small_cfg(max_iters=10, rays_per_iter=2048, fine_priors=fine))
     for _ in range(2):
         for i, T in enumerate(cams):
             mapper.integrate(scene.frame(i, T, width=160, height=120))
