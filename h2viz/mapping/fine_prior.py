@@ -60,10 +60,10 @@ class FinePrior:
         if self.state.device != device:
             self.state, self._storage = self.state.to(device), None
 
-    def shared(self) -> FinePrior:
-        """A prior reading these lattices as they are now, without copying them (for a frozen field)."""
+    def frozen(self) -> FinePrior:
+        """A copy of the lattices as they are now (for a frozen field: the live map keeps fusing into its own)."""
         view = FinePrior(self.voxel_size_m, self.truncation_m, self.backend)
-        view.state = self.state
+        view.state = self.state.clone()
         return view
 
     def load(self, state: torch.Tensor) -> None:
@@ -129,14 +129,14 @@ class FinePrior:
         flat[take, 1] += 1.0
 
     # ------------------------------------------------------------------------------------------- lookups
-    @torch.no_grad()
     def blend(
         self, voxel_origin: torch.Tensor, points: torch.Tensor, voxel: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """At points (N,3) in (or on the faces of) voxels (N,) with origins voxel_origin (V,3): the fused lattice
         points' part of the trilinear blend (N,) (tr units) and their share of the weights (N,) in [0, 1] (0 where
-        no frame reached the lattice)."""
-        if self._kernels() is None or points.device.type != "cpu":
+        no frame reached the lattice). Differentiable w.r.t. points that require gradients (autograd normals)."""
+        wants_grad = torch.is_grad_enabled() and points.requires_grad
+        if self._kernels() is None or points.device.type != "cpu" or wants_grad:
             return self.blend_reference(voxel_origin, points, voxel)
         value, cover = self.blend_numpy(voxel_origin.numpy(), points.detach().numpy(), voxel.numpy())
         return torch.from_numpy(value), torch.from_numpy(cover)
@@ -170,13 +170,13 @@ class FinePrior:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """`blend` in torch."""
         dev = self.state.device
-        value = torch.zeros(points.shape[0], device=dev)
-        cover = torch.zeros(points.shape[0], device=dev)
+        value = torch.zeros(points.shape[0], device=dev, dtype=points.dtype)
+        cover = torch.zeros(points.shape[0], device=dev, dtype=points.dtype)
         n_voxels = min(self.state.shape[0], voxel_origin.shape[0])  # a frozen copy may lag the live octree
         keep = ((voxel >= 0) & (voxel < n_voxels)).to(dev)
         if not bool(keep.any()):
             return value, cover
-        p, vid = points.to(dev)[keep].detach().float(), voxel.to(dev)[keep]
+        p, vid = points.to(dev)[keep].float(), voxel.to(dev)[keep]
         local = ((p - voxel_origin.to(dev)[vid].float()) / self.voxel_size_m * SUB).clamp(0.0, float(SUB))  # (n,3)
         base = torch.floor(local).clamp(max=SUB - 1)
         frac = local - base
@@ -187,6 +187,6 @@ class FinePrior:
         sums = self.state.view(-1, 2)[flat]  # (n,8,2)
         seen = sums[..., 1] > 0
         mean = torch.where(seen, sums[..., 0] / sums[..., 1].clamp(min=1e-6), torch.zeros_like(w))
-        value[keep] = (w * mean).sum(dim=1)
-        cover[keep] = (w * seen).sum(dim=1)
+        value = value.index_put((keep,), (w * mean).sum(dim=1).to(value.dtype))
+        cover = cover.index_put((keep,), (w * seen).sum(dim=1).to(cover.dtype))
         return value, cover

@@ -39,7 +39,7 @@ class FrozenField:
         self, field: HybridField, truncation_m: float, prior_band: float = 0.0, backend: Backend | None = None
     ) -> None:
         prior, fine, octree = field.color_prior, field.fine_prior, field.octree
-        field.color_prior, field.fine_prior, field.octree = None, None, None  # shared, not copied (~18 kB a voxel)
+        field.color_prior, field.fine_prior, field.octree = None, None, None  # not deep-copied (~18 kB a voxel)
         try:
             with torch.no_grad():
                 frozen = copy.deepcopy(field)
@@ -48,7 +48,7 @@ class FrozenField:
         finally:
             field.color_prior, field.fine_prior, field.octree = prior, fine, octree
         frozen.color_prior = None if prior is None else prior.shared()
-        frozen.fine_prior = None if fine is None else fine.shared()
+        frozen.fine_prior = None if fine is None else fine.frozen()  # geometry frozen too (~6 kB a voxel)
         frozen.octree = octree  # its lookups beyond the frozen voxels are ignored by the colour prior
         self.field = frozen
         self.truncation_m = float(truncation_m)

@@ -180,9 +180,21 @@ def prior_samples(
     """The lattice samples up to the first prior crossing + tr whose weight is above PRIOR_WEIGHT (and every
     negative one, for the crossing), with the prior as SDF (no networks)."""
     o, d = rays64(origins, dirs)
-    march = MarchParams(params.step_m, "prior", 0.0, params.truncation_m + params.step_m)
+    after = params.truncation_m + params.step_m
+    fine = field.fine_prior is not None  # the walk knows only the corner priors: walk to t_far, blend the field's
+    march = MarchParams(params.step_m, "distrust" if fine else "prior", 0.0, after)
     lat = render_lattice(octree, field.priors, field.corner_ids, None, o, d, np.full(o.shape[0], t_far), march)
     search = LatticeSearch(field, lat, o, d, params)
-    keep = lat.prior < params.temperature * math.log(1.0 / PRIOR_WEIGHT)  # the prior is the SDF
-    search.sdf[:] = np.where(keep, lat.prior, np.nan)
+    prior = lat.prior
+    if fine:
+        idx = np.arange(lat.t.shape[0])
+        points, voxel = search.points(idx).to(origins.device), torch.from_numpy(lat.voxel).to(origins.device)
+        with torch.no_grad():
+            prior = field.prior_sdf(points, voxel).float().cpu().numpy()
+        first = np.full(lat.n_rays, np.inf, np.float32)  # (R,) each ray's first negative prior sample
+        neg = prior < 0
+        np.minimum.at(first, lat.ray[neg], lat.t[neg])
+        prior = np.where(lat.t <= first[lat.ray] + after, prior, np.inf)  # the walk in "prior" mode stops there
+    keep = prior < params.temperature * math.log(1.0 / PRIOR_WEIGHT)  # the prior is the SDF
+    search.sdf[:] = np.where(keep, prior, np.nan)
     return _gather([(search, None, np.arange(o.shape[0]))], o.shape[0], origins.device)
