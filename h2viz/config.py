@@ -206,6 +206,11 @@ class MappingConfig:
     """Insert a keyframe at least every this many frames."""
     keyframe_strategy: str = "coverage"
     """coverage | random | overlap."""
+    keyframe_budget_mb: float = 1024.0
+    """Memory the keyframes may take (rays at 11 bytes a valid pixel, voxel lists, thumbnails), MB; past it the most
+    redundant keyframe whose voxels other keyframes also saw is retired, else the largest one keeps every other
+    pixel (down to 1/8), so every voxel stays seen by a keyframe (0 = unbounded). 1024 MB holds ~300 full 640x480
+    keyframes."""
     early_ending: bool = True
     """Stop a frame's optimisation when the loss exceeds its running mean twice in a row."""
     refine_iters: int = 0
