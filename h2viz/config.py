@@ -311,6 +311,15 @@ class ViewerConfig:
 
 
 @dataclass
+class AutosaveConfig:
+    every_frames: int = 50
+    """Write the run folder's autosave.pt (h2viz map and the dashboard) after every this many mapped frames
+    (0 = not by frames). A killed run loses at most this many frames: `h2viz map --resume RUN_FOLDER`."""
+    every_s: float = 120.0
+    """... or when this many seconds passed since the last autosave, whichever comes first (0 = not by time)."""
+
+
+@dataclass
 class Config:
     source: SourceConfig = field(default_factory=SourceConfig)
     """Where frames come from."""
@@ -320,6 +329,8 @@ class Config:
     """Evaluation against ground truth."""
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
     """The live dashboard."""
+    autosave: AutosaveConfig = field(default_factory=AutosaveConfig)
+    """Periodic checkpoints of a run, to resume after a crash."""
     out_dir: str = ""
     """Output folder of a run (empty = outputs/<source>-<time>)."""
 
