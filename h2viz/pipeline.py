@@ -172,7 +172,7 @@ def run_map(
     gt = _ground_truth(source, gt_mesh)
     eval_frames = EvalFrames(len(source), cfg.eval.n_interpolate)
     stream = RealtimeStream(source, cfg) if realtime else None
-    autosave = Autosaver(out, cfg.autosave)
+    autosave = Autosaver(out, cfg.autosave, mapper.frames_done)
     errors: list[str] = []
     last_index = _map_stream(mapper, source, stream, eval_frames, stats, last_index, autosave, errors, progress)
     refine_s = _refine(mapper, cfg.mapping.refine_iters, progress)

@@ -39,10 +39,13 @@ class Autosaver:
     passed since the last one. A failed write (disk full, folder gone) is logged and reported, never raised: the
     map stays in memory and the previous autosave stays valid."""
 
-    def __init__(self, folder: Path, cfg: AutosaveConfig, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, folder: Path, cfg: AutosaveConfig, frames_done: int = 0, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        """`frames_done`: the frames mapped before this run (a resumed run's), where counting starts."""
         self.path = Path(folder) / AUTOSAVE_NAME
         self.cfg, self._clock = cfg, clock
-        self._last_frames: int | None = None
+        self._last_frames = frames_done
         self._last_t = clock()
         self.saves = 0
         self.last_error: str | None = None
@@ -53,8 +56,6 @@ class Autosaver:
 
     def due(self, frames_done: int) -> bool:
         """Whether an autosave is due after `frames_done` mapped frames."""
-        if self._last_frames is None:
-            self._last_frames = frames_done  # counted from where the run (or the resumed run) started
         by_frames = self.cfg.every_frames > 0 and frames_done - self._last_frames >= self.cfg.every_frames
         by_time = self.cfg.every_s > 0 and self._clock() - self._last_t >= self.cfg.every_s
         return frames_done > self._last_frames and (by_frames or by_time)
