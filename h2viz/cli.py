@@ -76,7 +76,11 @@ def cmd_map(args: argparse.Namespace) -> int:
 def cmd_view(args: argparse.Namespace) -> int:
     from h2viz.viewer.server import run_view
 
-    run_view(build_config(args), on_ready=lambda url: print(f"h2viz dashboard: {url}  (Ctrl-C to stop)", flush=True))
+    run_view(
+        build_config(args),
+        on_ready=lambda url: print(f"h2viz dashboard: {url}  (Ctrl-C to stop)", flush=True),
+        resume=args.resume,
+    )
     return 0
 
 
@@ -158,6 +162,8 @@ def make_parser() -> argparse.ArgumentParser:
     _source_args(p)
     p.add_argument("--host", default=None, help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=None, help="port (default 8080)")
+    p.add_argument("--out", default="", help="run folder for autosaves and checkpoints (default: outputs/)")
+    p.add_argument("--resume", type=Path, default=None, help="continue a run: its folder or a checkpoint .pt")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("eval", help="Acc / Comp / Comp ratio of a mesh against ground truth")

@@ -21,7 +21,7 @@ from h2viz.errors import CheckpointError, H2vizError
 from h2viz.eval.mesh_render import MeshRenderer
 from h2viz.eval.metrics import mesh_metrics, observed_mask_fn
 from h2viz.eval.report import _stride_K, evaluate_images, format_table, load_mesh, write_metrics
-from h2viz.mapping.autosave import Autosaver, find_checkpoint
+from h2viz.mapping.autosave import Autosaver, find_checkpoint, run_progress, run_state
 from h2viz.mapping.checkpoint import load_checkpoint, save_checkpoint
 from h2viz.mapping.mapper import Mapper
 from h2viz.sources.base import FrameSource, make_source
@@ -93,16 +93,8 @@ def _open_mapper(cfg: Config, resume: Path | None) -> tuple[Mapper, int, list[Fr
         return Mapper(cfg.mapping), -1, []
     mapper, extra = load_checkpoint(resume, cfg.mapping)
     log.info("resuming from %s after frame %s", resume, extra.get("last_index"))
-    try:
-        stats = [FrameStats(**s) for s in extra.get("stats", [])]
-    except TypeError as e:
-        raise CheckpointError(f"{resume}: its frame statistics do not match this version ({e})") from None
-    return mapper, int(extra.get("last_index", -1)), stats
-
-
-def _run_extra(last_index: int, stats: list[FrameStats]) -> dict[str, Any]:
-    """What a checkpoint of `h2viz map` carries besides the map: where to continue, and the stats so far."""
-    return {"last_index": last_index, "stats": [dataclasses.asdict(s) for s in stats]}
+    last_index, stats = run_progress(resume, extra)
+    return mapper, last_index, stats
 
 
 def _ground_truth(source: FrameSource, gt_mesh: Path | None) -> trimesh.Trimesh | None:
@@ -240,7 +232,7 @@ def _map_stream(
         stats.append(s)
         last_index = frame.index
         bar.set_postfix(t=f"{s.map_time_s:.2f}s", it=s.iterations, vox=s.n_voxels, kf=s.n_keyframes)
-        failed = autosave.maybe_save(mapper, lambda: _run_extra(last_index, stats))  # noqa: B023 - called now
+        failed = autosave.maybe_save(mapper, mapper.frames_done, lambda: run_state(last_index, stats))  # noqa: B023 - called now
         if failed is not None and failed not in errors:
             errors.append(failed)
     bar.close()
@@ -256,7 +248,7 @@ def _save_outputs(mapper: Mapper, out: Path, last_index: int, stats: list[FrameS
     except OSError as e:
         errors.append(f"cannot write {out / 'mesh.ply'} ({e}); free space there and export it from the checkpoint")
     try:
-        save_checkpoint(mapper, out / "checkpoint.pt", _run_extra(last_index, stats))
+        save_checkpoint(mapper, out / "checkpoint.pt", run_state(last_index, stats))
     except CheckpointError as e:
         errors.append(f"{e}; the last autosave in {out} is kept")
 

@@ -40,7 +40,7 @@ class CommandServing:
     _mesh_dirty: bool
     _last_map_s: float
     _refine_left: int
-    _stats: list[FrameStats]
+    _stats: deque[FrameStats]
 
     def _publish(self) -> None:
         raise NotImplementedError
