@@ -103,23 +103,13 @@ def child(args: argparse.Namespace) -> None:
     """One run: dashboard + worker + CLIENTS wire readers; samples to <folder>/samples.jsonl, progress to
     <folder>/progress (frames mapped), the final mesh to <folder>/mesh.ply."""
     from bench.viewer import REMOTE_CLIENT
-    from h2viz.mapping.autosave import find_checkpoint, run_progress
-    from h2viz.mapping.checkpoint import load_checkpoint
-    from h2viz.mapping.mapper import Mapper
-    from h2viz.viewer.server import Dashboard
-    from h2viz.worker import MappingWorker
+    from h2viz.viewer.server import Dashboard, build_worker
     from h2viz.worker.mapping_worker import rss_mb
 
     folder = Path(args.child)
     cfg = run_config(args, args.frames // args.child_laps)
     cfg.out_dir = str(folder)
-    source = LapSource(cfg, args.child_laps)
-    if args.resume:
-        path = find_checkpoint(folder)
-        mapper, extra = load_checkpoint(path, cfg.mapping)
-        worker = MappingWorker(source, mapper, cfg, autosave_dir=folder, resumed=run_progress(path, extra))
-    else:
-        worker = MappingWorker(source, Mapper(cfg.mapping), cfg, autosave_dir=folder)
+    worker = build_worker(cfg, folder if args.resume else None, LapSource(cfg, args.child_laps))
     dashboard = Dashboard(worker, cfg, port=0).start()
     ws_url = dashboard.url.replace("http://", "ws://")
     readers = [subprocess.Popen([sys.executable, "-c", REMOTE_CLIENT, ws_url], stdout=subprocess.DEVNULL)

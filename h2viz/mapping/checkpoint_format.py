@@ -68,14 +68,18 @@ def write(state: dict[str, Any], path: Path) -> None:
 
 def read(path: Path) -> dict[str, Any]:
     """Load a checkpoint without running any code it carries; a file that would need code is refused."""
-    path = Path(path)
+    return decode(_load(Path(path)))
+
+
+def _load(path: Path) -> dict[str, Any]:
+    """torch.load with weights_only=True (and the safe globals in effect), as a dict, or a CheckpointError."""
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any failure means the file is unusable as it is
         raise _refusal(path, e) from None
     if not isinstance(data, dict):
         raise CheckpointError(f"{path} is not an h2viz checkpoint (it holds a {type(data).__name__}, not a dict)")
-    return decode(data)
+    return data
 
 
 def _refusal(path: Path, e: Exception) -> CheckpointError:
@@ -107,12 +111,5 @@ def _numpy_globals() -> list[Any]:
 
 def read_legacy(path: Path) -> dict[str, Any]:
     """A format-1 checkpoint's state, loaded with only NumPy's array reconstruction allowed besides torch's own."""
-    path = Path(path)
-    try:
-        with torch.serialization.safe_globals(_numpy_globals()):
-            data = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001
-        raise _refusal(path, e) from None
-    if not isinstance(data, dict):
-        raise CheckpointError(f"{path} is not an h2viz checkpoint (it holds a {type(data).__name__}, not a dict)")
-    return data
+    with torch.serialization.safe_globals(_numpy_globals()):
+        return _load(Path(path))

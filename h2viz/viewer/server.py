@@ -19,7 +19,7 @@ import numpy as np
 import viser
 
 from h2viz.config import Config
-from h2viz.sources.base import make_source
+from h2viz.sources.base import FrameSource, make_source
 from h2viz.types import MapSnapshot
 from h2viz.viewer.layers import LayerSet
 from h2viz.viewer.panels import Panels
@@ -209,14 +209,15 @@ def run_folder(cfg: Config) -> Path:
     return Path(cfg.out_dir or "outputs")
 
 
-def build_worker(cfg: Config, resume: Path | None = None) -> MappingWorker:
-    """Open the configured source and a fresh mapper, or the mapper of a checkpoint (a file, or the newest in a run
-    folder) to continue after its last frame; autosaves go to the run folder (the mapper module imports torch)."""
+def build_worker(cfg: Config, resume: Path | None = None, source: FrameSource | None = None) -> MappingWorker:
+    """Open the configured source (or take `source`) and a fresh mapper, or the mapper of a checkpoint (a file, or
+    the newest in a run folder) to continue after its last frame; autosaves go to the run folder (the mapper module
+    imports torch)."""
     from h2viz.mapping.autosave import find_checkpoint, keep_earlier_autosave, run_progress
     from h2viz.mapping.checkpoint import load_checkpoint
     from h2viz.mapping.mapper import Mapper
 
-    source = make_source(cfg.source)
+    source = source or make_source(cfg.source)
     folder = run_folder(cfg)
     if resume is None:
         kept = keep_earlier_autosave(folder)
