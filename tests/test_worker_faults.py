@@ -83,19 +83,13 @@ def test_a_failed_mesh_update_is_reported_after_an_autosave_and_mapping_goes_on(
 
 def test_the_dashboard_resumes_a_run_folder_after_its_last_frame_and_keeps_earlier_autosaves(tmp_path: Path) -> None:
     cfg = config(tmp_path, every=3)
-    cfg.source.format, cfg.source.max_frames = "synthetic", 0
     source = BoxRoomSource(n=8)
     first = MappingWorker(BoxRoomSource(n=4), recording_mapper(cfg.mapping), cfg, autosave_dir=tmp_path)
     run(first)
     assert load_checkpoint(tmp_path / AUTOSAVE_NAME)[1]["last_index"] == 2  # after frames 0-2
 
-    original = server.make_source
-    server.make_source = lambda _cfg: source  # type: ignore[assignment]
-    try:
-        resumed = run(server.build_worker(cfg, resume=tmp_path))
-        fresh = server.build_worker(cfg)
-    finally:
-        server.make_source = original  # type: ignore[assignment]
+    resumed = run(server.build_worker(cfg, resume=tmp_path, source=source))
+    fresh = server.build_worker(cfg, source=BoxRoomSource(n=2))
     assert resumed.notices == [
         f"Resumed from {tmp_path / AUTOSAVE_NAME}: 3 frames were mapped; mapping goes on after frame 2."
     ]
