@@ -11,12 +11,13 @@ from typing import Any
 import pytest
 
 from h2viz.config import Config
+from h2viz.errors import H2vizError
 from h2viz.mapping.autosave import AUTOSAVE_NAME
 from h2viz.mapping.checkpoint import load_checkpoint
 from h2viz.mapping.mesh_job import MeshJob
 from h2viz.viewer import server
 from h2viz.worker import MappingWorker
-from tests.viewer.fakes import BoxRoomSource, recording_mapper, tiny_mapping_config
+from tests.viewer.fakes import BoxRoomSource, intrinsics, recording_mapper, room_pose, tiny_mapping_config
 
 
 def config(folder: Path, every: int = 2) -> Config:
@@ -102,3 +103,39 @@ def test_the_dashboard_resumes_a_run_folder_after_its_last_frame_and_keeps_earli
         f"`h2viz view --resume {kept[0]}`."
     ]
     assert load_checkpoint(kept[0])[1]["last_index"] == 5  # the resumed run's last autosave, after frames 3-5
+
+
+def test_a_failed_render_or_export_is_reported_after_an_autosave_and_mapping_goes_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from h2viz.worker import requests
+
+    cfg = config(tmp_path, every=0)
+    mapper = recording_mapper(cfg.mapping)
+    worker = MappingWorker(BoxRoomSource(n=4), mapper, cfg, autosave_dir=tmp_path)
+    worker.start()
+    try:
+        assert worker.wait_finished(120)
+
+        def broken_render(*args: Any, **kwargs: Any) -> Any:
+            raise RuntimeError("injected render failure")
+
+        monkeypatch.setattr(mapper, "render", broken_render)
+        K, T = intrinsics(64, 48), room_pose(2, 5)
+        with pytest.raises(RuntimeError, match="injected render failure"):
+            worker.submit("render", K=K, T_world_camera=T, height=48, width=64, mode="rgb").result(30)
+        monkeypatch.setattr(requests, "export_mesh_bytes", lambda *a: (_ for _ in ()).throw(OSError(28, "No space")))
+        with pytest.raises(OSError, match="No space"):
+            worker.submit("export", format="ply").result(30)
+        with pytest.raises(H2vizError, match="unknown mode"):  # a bad request is the asker's error only
+            worker.submit("render", K=K, T_world_camera=T, height=48, width=64, mode="bogus").result(30)
+        assert worker.alive and worker.submit("pause").result(10)  # still serving
+    finally:
+        worker.stop()
+    assert worker.errors[0].startswith(
+        f"a view render failed (RuntimeError: injected render failure); the map so far is saved in {tmp_path}"
+    )
+    assert worker.errors[0].endswith("mapping goes on; try it again, or with a smaller image or another format")
+    assert worker.errors[1].startswith("a mesh export failed (OSError: [Errno 28] No space); mapping goes on")
+    assert len(worker.errors) == 2  # autosaved once: the export came within a minute of the render
+    assert load_checkpoint(tmp_path / AUTOSAVE_NAME)[0].frames_done == 4

@@ -42,6 +42,7 @@ IDLE_REFRESH_S = 1.0  # same while mapping is paused or finished (until every ch
 REFINE_SLICE = 5  # refinement steps between two looks at commands, renders and the mesh
 MESH_DEADLINE_S = 0.3  # a mesh job still on its required chunks this long after submission gets the cores to itself
 MESH_WAIT_MAX_S = 2.0  # ... for at most this long at a time
+REQUEST_FAULT_AUTOSAVE_S = 60.0  # a failing render or export autosaves at most this often (renders come in streams)
 STATS_KEPT = 2000  # per-frame stats the snapshots carry (the plots show the latest); older ones are counted only
 
 
@@ -92,6 +93,7 @@ class MappingWorker(CommandServing):
             else None
         )
         self._mesh_errors_seen = 0
+        self._request_fault_t = -np.inf  # time.monotonic() of the last autosave after a failed request
         self.notices: list[str] = []  # what the dashboard tells each browser that connects (an earlier run...)
         self._poses: list[np.ndarray] = []
         self._current: RgbdFrame | None = None
@@ -249,6 +251,20 @@ class MappingWorker(CommandServing):
         if failed is not None:
             return f"{failed}; "
         return f"the map so far is saved in {self._autosave.path}; "
+
+    def _on_request_failure(self, kind: str, error: Exception) -> None:
+        """(mapping thread) A render, export or save that failed unexpectedly: autosave (at most once a minute) and
+        say what failed and what goes on; the browser that asked was told through its request."""
+        now = time.monotonic()
+        saved = ""
+        if now - self._request_fault_t >= REQUEST_FAULT_AUTOSAVE_S:
+            self._request_fault_t = now
+            saved = self._autosave_now()
+        what = {"render": "a view render", "export": "a mesh export", "save": "saving a checkpoint"}.get(kind, kind)
+        self._errors.append(
+            f"{what} failed ({type(error).__name__}: {error}); {saved}mapping goes on; try it again, or with a smaller "
+            "image or another format"
+        )
 
     def _after_mesh_failure(self) -> None:
         """(mapping thread) Autosave once after the mesh thread reported new failures, and say what to do."""
