@@ -18,6 +18,7 @@ import argparse
 import dataclasses
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -51,6 +52,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=0, help="seed of the frame the crash run is killed at")
     p.add_argument("--no-explore", action="store_true", help="skip the explore run")
     p.add_argument("--out", default="outputs/soak", help="folder of the runs, samples and plot")
+    p.add_argument("--reuse", action="store_true", help="keep the runs already finished in --out, run the others")
     p.add_argument("--doc", default="", help="also write the report to this markdown file (docs/soak.md)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="more config overrides")
     p.add_argument("--child", default="", help=argparse.SUPPRESS)  # run folder of a child process
@@ -124,7 +126,8 @@ def child(args: argparse.Namespace) -> None:
         version, snap = worker.slot.wait_newer(version, 0.2)
         if snap is None:
             continue
-        (folder / "progress").write_text(str(snap.frames_done))
+        (folder / "progress.tmp").write_text(str(snap.frames_done))
+        (folder / "progress.tmp").replace(folder / "progress")  # atomic: a kill never leaves it half written
         if snap.frames_done >= next_sample and snap.stats:
             times = [s.map_time_s for s in list(snap.stats)[-args.sample_every :]]
             row = {
@@ -209,8 +212,8 @@ def crash_run(args: argparse.Namespace, folder: Path, laps: int) -> dict[str, An
     while progress(folder) < kill_at and proc.poll() is None:
         time.sleep(0.05)
     os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    mapped = progress(folder)  # its wire readers end by themselves when the server's sockets close
+    proc.wait()  # its wire readers end by themselves when the server's sockets close
+    mapped = progress(folder)
     saved = find_checkpoint(folder)
     kept = load_checkpoint(saved)[0].frames_done
     resumed = spawn(args, folder, laps, resume=True)
@@ -236,11 +239,15 @@ def mesh_match(a_path: Path, b_path: Path) -> dict[str, float]:
     }
 
 
-def growth(samples: list[dict[str, Any]], start: int, key: str = "rss_mb") -> tuple[float, float, float]:
-    """(value at the first sample at or after frame `start`, value at the last sample, relative growth)."""
-    after = [s for s in samples if s["frame"] >= start] or samples[-1:]
-    first, last = after[0][key], samples[-1][key]
-    return first, last, (last - first) / first if first else float("nan")
+def growth(samples: list[dict[str, Any]], start: int, window: int, key: str = "rss_mb") -> tuple[float, float, float]:
+    """Median of `key` over the samples of frames [start, start + window), over the samples of the last `window`
+    frames, and the relative growth between the two (medians: a sample can fall on a passing peak, an autosave or
+    a mesh job)."""
+    end = samples[-1]["frame"]
+    first = [s[key] for s in samples if start <= s["frame"] < start + window] or [samples[-1][key]]
+    last = [s[key] for s in samples if s["frame"] > end - window]
+    a, b = float(np.median(first)), float(np.median(last))
+    return a, b, (b - a) / a if a else float("nan")
 
 
 COLOURS = {"revisit": (200, 90, 30), "explore": (40, 140, 40), "crash": (30, 30, 210)}  # BGR
@@ -309,12 +316,14 @@ def report(args: argparse.Namespace, runs: dict[str, list[dict[str, Any]]], summ
             rows.append([name, str(s["frame"]), fmt(s["rss_mb"], 0), fmt(s["keyframe_mb"], 1), str(s["keyframes"]),
                          str(s["voxels"]), fmt(s["surface_m2"], 1), fmt(s["frame_s"], 3)])  # fmt: skip
     lines += [markdown_table(header, rows), ""]
-    start = min(300, total // 3)
-    first, last, rel = growth(runs["revisit"], start)
+    start, window = min(300, total // 3), max(total // 10, 2 * args.sample_every)
+    first, last, rel = growth(runs["revisit"], start, window)
+    top = max(s["rss_mb"] for s in runs["revisit"] if s["frame"] >= start)
     budget = summaries["revisit"]["budget"]
     peak = max(v["max_keyframe_mb"] for v in summaries.values())
     targets = [
-        [f"revisit: RSS growth after frame {start}", "≤ 10 %", f"{first:.0f} -> {last:.0f} MB ({100 * rel:+.1f} %)",
+        [f"revisit: RSS growth after frame {start} (median of frames {start}-{start + window} vs the last {window})",
+         "≤ 10 %", f"{first:.0f} -> {last:.0f} MB ({100 * rel:+.1f} %), largest sample {top:.0f} MB",
          "yes" if rel <= 0.10 else "no"],
         ["keyframe store, largest over every frame of every run", f"≤ {args.budget_mb:g} MB", f"{peak:.1f} MB",
          "yes" if peak <= args.budget_mb else "no"],
@@ -324,8 +333,9 @@ def report(args: argparse.Namespace, runs: dict[str, list[dict[str, Any]]], summ
     ]  # fmt: skip
     if "explore" in runs:
         e = runs["explore"]
-        after = [s for s in e if s["frame"] >= start] or e[-1:]
-        d_mb, d_m2 = e[-1]["rss_mb"] - after[0]["rss_mb"], e[-1]["surface_m2"] - after[0]["surface_m2"]
+        mb0, mb1, _ = growth(e, start, window)
+        m2_0, m2_1, _ = growth(e, start, window, "surface_m2")
+        d_mb, d_m2 = mb1 - mb0, m2_1 - m2_0
         per = d_mb / d_m2 if d_m2 > 0 else float("nan")
         targets.append([f"explore: RSS growth per m² of new surface after frame {start}", "grows with the surface",
                         f"{d_mb:+.0f} MB for {d_m2:+.1f} m² ({fmt(per, 2)} MB/m²)", "-"])  # fmt: skip
@@ -354,15 +364,22 @@ def main(argv: Sequence[str] | None = None) -> str:
     if args.frames < 3 or args.laps < 1 or args.frames % args.laps:
         raise SystemExit(f"--frames ({args.frames}) must be >= 3 and a multiple of --laps ({args.laps})")
     out = Path(args.out)
-    if out.exists() and any(out.iterdir()):
-        raise SystemExit(f"{out} is not empty; pass another --out or remove it")
+    if out.exists() and any(out.iterdir()) and not args.reuse:
+        raise SystemExit(f"{out} is not empty; pass another --out, remove it, or --reuse its finished runs")
     plan = {"revisit": args.laps} | ({} if args.no_explore else {"explore": 1})
     runs, summaries = {}, {}
     for name, laps in plan.items():
-        finish(spawn(args, out / name, laps), out / name)
+        if not (out / name / "summary.json").is_file():
+            shutil.rmtree(out / name, ignore_errors=True)  # an unfinished run starts again
+            finish(spawn(args, out / name, laps), out / name)
         runs[name] = read_samples(out / name)
         summaries[name] = json.loads((out / name / "summary.json").read_text())
-    crash = crash_run(args, out / "crash", args.laps)
+    if (out / "crash.json").is_file():
+        crash = json.loads((out / "crash.json").read_text())
+    else:
+        shutil.rmtree(out / "crash", ignore_errors=True)
+        crash = crash_run(args, out / "crash", args.laps)
+        (out / "crash.json").write_text(json.dumps(crash))
     runs["crash"] = read_samples(out / "crash")
     summaries["crash"] = json.loads((out / "crash" / "summary.json").read_text())
     match = mesh_match(out / "revisit" / "mesh.ply", out / "crash" / "mesh.ply")
