@@ -7,7 +7,8 @@ While the keyframes' rays, voxel lists and thumbnails take more than the budget:
    MAX_THINNING times, to 1/2^MAX_THINNING of its pixels), which keeps the voxels it sees;
 3. else (every keyframe thinned as far as allowed) retire the keyframe that alone sees the fewest voxels, counted in
    `BudgetReport.coverage_lost`.
-The newest keyframe is never retired: it is what the current frame is optimised against next.
+The newest keyframe is never retired (it is what the current frame is optimised against next), only thinned; a
+budget smaller than one keyframe thinned as far as allowed is exceeded by that keyframe alone.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ class KeyframeBudget:
         retired: list[int] = []
         if not self.budget_bytes:
             return retired
-        while len(rays) > 1 and keyframe_bytes(keyframes, rays, thumbnails) > self.budget_bytes:
+        while rays and keyframe_bytes(keyframes, rays, thumbnails) > self.budget_bytes:
             unique, redundancy = keyframes.unique_counts()
             unique[-1] = np.iinfo(np.int64).max  # the newest keyframe stays
             free = np.flatnonzero(unique == 0)
@@ -65,6 +66,8 @@ class KeyframeBudget:
                     self.thinning[k] += 1
                     self.report.thinned += 1
                     continue
+                if len(rays) == 1:  # the newest alone, thinned as far as allowed: over a budget this small
+                    break
                 j = int(np.argmin(unique))
                 self.report.coverage_lost += 1
             retired.append(keyframes.frame_indices[j])

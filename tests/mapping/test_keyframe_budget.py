@@ -104,3 +104,10 @@ def test_a_mapper_under_a_small_budget_stays_within_it_and_keeps_every_voxel_cov
     assert report.retired > 0 and report.coverage_lost == 0  # the second lap's keyframes overlap the first's
     np.testing.assert_array_equal(bounded.keyframes.covered_voxels(), free.keyframes.covered_voxels())
     assert len(bounded.thumbnails) == len(bounded.keyframe_rays) == len(bounded.keyframes)
+
+
+def test_a_lone_keyframe_over_the_budget_is_thinned_but_kept() -> None:
+    ks, rays, thumbs = build(SETS[:1]), [FrameRays(flat_frame(0), torch.device("cpu"))], [np.zeros((1, 1, 3), np.uint8)]
+    budget = KeyframeBudget(1e-6)
+    assert budget.fit(ks, rays, thumbs) == [] and len(rays) == 1
+    assert budget.report.thinned == 3 and len(rays[0]) == 2000 // 8  # down to 1/8 of its pixels, then left alone
