@@ -85,7 +85,11 @@ def cmd_map(args: argparse.Namespace) -> int:
 def cmd_view(args: argparse.Namespace) -> int:
     from h2viz.viewer.server import run_view
 
-    run_view(build_config(args), on_ready=lambda url: print(f"h2viz dashboard: {url}  (Ctrl-C to stop)", flush=True))
+    run_view(
+        build_config(args),
+        on_ready=lambda url: print(f"h2viz dashboard: {url}  (Ctrl-C to stop)", flush=True),
+        resume=args.resume,
+    )
     return 0
 
 
@@ -139,6 +143,14 @@ def cmd_bag_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_upgrade_checkpoint(args: argparse.Namespace) -> int:
+    from h2viz.mapping.checkpoint import upgrade_checkpoint
+
+    out = upgrade_checkpoint(args.path, args.out)
+    print(f"wrote {out}; resume from it with `h2viz map --resume {out}`")
+    return 0
+
+
 def cmd_config(args: argparse.Namespace) -> int:
     import yaml
 
@@ -168,7 +180,12 @@ def make_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("map", help="map a sequence headless and write mesh, checkpoint, stats and metrics")
     _source_args(p)
     p.add_argument("--out", default="", help="output folder (default: outputs/<format>-<time>)")
-    p.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint.pt of an earlier run")
+    p.add_argument(
+        "--resume",
+        type=Path,
+        default=None,
+        help="continue an earlier run: its folder (the newest checkpoint there; outputs go there too) or a .pt file",
+    )
     p.add_argument("--gt-mesh", type=Path, default=None, help="ground-truth mesh for metrics.json")
     p.add_argument(
         "--realtime",
@@ -189,6 +206,8 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default=None, help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=None, help="port (default 8080)")
     p.add_argument("--realtime", action="store_true", help="start in real-time mode (source.realtime)")
+    p.add_argument("--out", default="", help="run folder for autosaves and checkpoints (default: outputs/)")
+    p.add_argument("--resume", type=Path, default=None, help="continue a run: its folder or a checkpoint .pt")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("replay", help="serve a recorded run: play, pause, scrub, step, speed (no mapping)")
@@ -228,6 +247,13 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", action="append", default=[], help="YAML config file")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
     p.set_defaults(func=cmd_bag_info)
+
+    p = sub.add_parser(
+        "upgrade-checkpoint", help="re-save a checkpoint of an older h2viz in this version's safe format"
+    )
+    p.add_argument("path", type=Path, help="the old checkpoint .pt (read without running code it might carry)")
+    p.add_argument("--out", type=Path, default=None, help="where to write it (default: <name>.v2.pt next to it)")
+    p.set_defaults(func=cmd_upgrade_checkpoint)
 
     p = sub.add_parser("config", help="print the resolved configuration (or every field's documentation)")
     p.add_argument("--config", action="append", default=[], help="YAML config file")

@@ -224,6 +224,11 @@ class MappingConfig:
     """Insert a keyframe at least every this many frames."""
     keyframe_strategy: str = "coverage"
     """coverage | random | overlap."""
+    keyframe_budget_mb: float = 1024.0
+    """Memory the keyframes may take (rays at 11 bytes a valid pixel, voxel lists, thumbnails), MB; past it the most
+    redundant keyframe whose voxels other keyframes also saw is retired, else the largest one keeps every other
+    pixel (down to 1/8), so every voxel stays seen by a keyframe (0 = unbounded). 1024 MB holds ~300 full 640x480
+    keyframes."""
     early_ending: bool = True
     """Stop a frame's optimisation when the loss exceeds its running mean twice in a row."""
     refine_iters: int = 0
@@ -328,6 +333,15 @@ class ViewerConfig:
 
 
 @dataclass
+class AutosaveConfig:
+    every_frames: int = 50
+    """Write the run folder's autosave.pt (h2viz map and the dashboard) after every this many mapped frames
+    (0 = not by frames). A killed run loses at most this many frames: `h2viz map --resume RUN_FOLDER`."""
+    every_s: float = 120.0
+    """... or when this many seconds passed since the last autosave, whichever comes first (0 = not by time)."""
+
+
+@dataclass
 class Config:
     source: SourceConfig = field(default_factory=SourceConfig)
     """Where frames come from."""
@@ -337,6 +351,8 @@ class Config:
     """Evaluation against ground truth."""
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
     """The live dashboard."""
+    autosave: AutosaveConfig = field(default_factory=AutosaveConfig)
+    """Periodic checkpoints of a run, to resume after a crash."""
     out_dir: str = ""
     """Output folder of a run (empty = outputs/<source>-<time>)."""
 

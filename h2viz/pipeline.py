@@ -17,9 +17,11 @@ import trimesh
 from tqdm import tqdm
 
 from h2viz.config import Config, dump_config
+from h2viz.errors import CheckpointError, H2vizError
 from h2viz.eval.mesh_render import MeshRenderer
 from h2viz.eval.metrics import mesh_metrics, observed_mask_fn
 from h2viz.eval.report import _stride_K, evaluate_images, format_table, load_mesh, write_metrics
+from h2viz.mapping.autosave import Autosaver, find_checkpoint, run_progress, run_state
 from h2viz.mapping.checkpoint import load_checkpoint, save_checkpoint
 from h2viz.mapping.mapper import Mapper
 from h2viz.sources.base import FrameSource, make_source
@@ -28,6 +30,7 @@ from h2viz.worker.feed import END, FrameFeed, WorkerSettings
 from h2viz.worker.run_recording import RunRecorder
 
 log = logging.getLogger("h2viz.map")
+MAX_CONSECUTIVE_FAILURES = 3  # frames in a row the mapper may fail on before the run stops (and saves)
 
 
 @dataclass
@@ -39,6 +42,8 @@ class RunResult:
     dropped: int = 0  # real-time mode: frames that arrived while the mapper was busy
     refine_s: float = 0.0  # seconds of mapping.refine_iters steps after the last frame
     record_s: float = 0.0  # seconds the recording cost the run (meshing every frame, handing over steps)
+    errors: list[str] = field(default_factory=list)  # failures met on the way (the run kept what was mapped)
+    resumed_from: Path | None = None
 
     def summary(self) -> str:
         line = f"mapped {len(self.stats)} frames ({self.skipped} skipped, {self.dropped} dropped)"
@@ -46,6 +51,9 @@ class RunResult:
             times = np.array([s.map_time_s for s in self.stats])
             line += f"; per-frame time median {np.median(times):.3f} s, p90 {np.percentile(times, 90):.3f} s"
         lines = [line]
+        if self.resumed_from is not None:
+            lines.append(f"resumed from {self.resumed_from}")
+        lines += [f"problem: {e}" for e in self.errors]
         if self.refine_s > 0:
             lines.append(f"refined the map for {self.refine_s:.1f} s (mapping.refine_iters)")
         if self.metrics:
@@ -80,13 +88,15 @@ def default_out_dir(cfg: Config) -> Path:
     return Path("outputs") / f"{cfg.source.format}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-def _open_mapper(cfg: Config, resume: Path | None) -> tuple[Mapper, int]:
-    """A fresh mapper, or one restored from a checkpoint with the index of the last frame it mapped."""
+def _open_mapper(cfg: Config, resume: Path | None) -> tuple[Mapper, int, list[FrameStats]]:
+    """A fresh mapper, or one restored from a checkpoint (a file, or a run folder's newest) with the index of the last
+    frame it mapped and the stats of the frames mapped before it."""
     if resume is None:
-        return Mapper(cfg.mapping), -1
+        return Mapper(cfg.mapping), -1, []
     mapper, extra = load_checkpoint(resume, cfg.mapping)
     log.info("resuming from %s after frame %s", resume, extra.get("last_index"))
-    return mapper, int(extra.get("last_index", -1))
+    last_index, stats = run_progress(resume, extra)
+    return mapper, last_index, stats
 
 
 def _ground_truth(source: FrameSource, gt_mesh: Path | None) -> trimesh.Trimesh | None:
@@ -140,52 +150,127 @@ def run_map(
     record: bool = False,
 ) -> RunResult:
     """Map every frame of the configured source (or, in real-time mode, the newest frame whenever the mapper is
-    free) and write the run's outputs; with `record`, also a timeline recording of the run in out/recording."""
+    free) and write the run's outputs; with `record`, also a timeline recording of the run in out/recording.
+    `resume` (a checkpoint, or a run folder: its newest one; the run folder is
+    then also the output folder unless cfg.out_dir says otherwise) continues an earlier run and its stats. The
+    mapping state is autosaved to the run folder every cfg.autosave frames / seconds; a source that fails mid-stream,
+    repeated mapper failures or Ctrl-C end the stream, and what was mapped is kept, saved and evaluated."""
     source = make_source(cfg.source)
+    if resume is not None:
+        resume_dir = Path(resume) if Path(resume).is_dir() else None
+        resume = find_checkpoint(resume)
+        if not cfg.out_dir and resume_dir is not None:
+            cfg.out_dir = str(resume_dir)
     out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     dump_config(cfg, out / "config.yaml")
-    mapper, last_index = _open_mapper(cfg, resume)
+    mapper, last_index, stats = _open_mapper(cfg, resume)
     gt = _ground_truth(source, gt_mesh)
-    total = len(source)
-    eval_frames = EvalFrames(total, cfg.eval.n_interpolate)
-    stats: list[FrameStats] = []
-    bar = tqdm(total=total, disable=not progress, unit="frame", dynamic_ncols=True)
+    eval_frames = EvalFrames(len(source), cfg.eval.n_interpolate)
     stream = RealtimeStream(source, cfg) if realtime else None
-    recorder = _recorder(mapper, cfg, out, total) if record else None
-    for position, frame in stream if stream is not None else enumerate(source):
-        bar.update(position + 1 + (stream.dropped if stream is not None else 0) - bar.n)  # frames read so far
-        eval_frames.add(position, frame)
-        if frame.index <= last_index:
-            continue
-        s = mapper.integrate(frame)
-        stats.append(s)
-        if recorder is not None:
-            recorder.after_frame(frame, s)
-        last_index = frame.index
-        bar.set_postfix(t=f"{s.map_time_s:.2f}s", it=s.iterations, vox=s.n_voxels, kf=s.n_keyframes)
-    bar.close()
+    recorder = _recorder(mapper, cfg, out, len(source)) if record else None
+    autosave = Autosaver(out, cfg.autosave, mapper.frames_done)
+    errors: list[str] = []
+    last_index = _map_stream(
+        mapper, source, stream, eval_frames, stats, last_index, autosave, errors, progress, recorder
+    )
     refine_s = _refine(mapper, cfg.mapping.refine_iters, progress)
     if recorder is not None:
         recorder.finish()
         mapper.mesh_resolution = cfg.mapping.mesh_resolution  # the written mesh at its own resolution
     mapper.update_mesh()
     mesh = mapper.mesh()
-    mapper.export_mesh(out / "mesh.ply")
-    save_checkpoint(mapper, out / "checkpoint.pt", {"last_index": last_index})
+    _save_outputs(mapper, out, last_index, stats, errors)
     metrics = evaluate(mapper, mesh, gt, eval_frames, cfg) if gt is not None else {}
     if metrics:
         write_metrics(metrics, out / "metrics.json")
     dropped = stream.dropped if stream is not None else 0
-    _write_stats(out / "stats.json", stats, source, dropped, refine_s)
+    _write_stats(out / "stats.json", stats, source, dropped, refine_s, errors)
     record_s = recorder.seconds if recorder is not None else 0.0
-    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s, record_s)
+    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s, record_s, errors, resume)
 
 
 def _recorder(mapper: Mapper, cfg: Config, out: Path, total: int) -> RunRecorder:
     """A recorder of this run into out/recording, meshing at the live dashboard's resolution."""
     mapper.mesh_resolution = cfg.viewer.live_mesh_resolution
     return RunRecorder(mapper, out / "recording", total, cfg.viewer.record_fps)
+
+
+def _map_stream(
+    mapper: Mapper,
+    source: FrameSource,
+    stream: RealtimeStream | None,
+    eval_frames: EvalFrames,
+    stats: list[FrameStats],
+    last_index: int,
+    autosave: Autosaver,
+    errors: list[str],
+    progress: bool,
+    recorder: RunRecorder | None = None,
+) -> int:
+    """Map the frames after `last_index`, appending to `stats` and `errors`; returns the last mapped frame's index.
+    The stream ends early, keeping what was mapped, when the source fails, the mapper fails on
+    MAX_CONSECUTIVE_FAILURES frames in a row, or on Ctrl-C."""
+    bar = tqdm(total=len(source), disable=not progress, unit="frame", dynamic_ncols=True)
+    frames = iter(stream if stream is not None else enumerate(source))
+    failures = 0
+    while True:
+        try:
+            position, frame = next(frames)
+        except StopIteration:
+            break
+        except KeyboardInterrupt:
+            errors.append(f"interrupted after frame {last_index}; the map so far is saved")
+            break
+        except (OSError, H2vizError, ValueError, RuntimeError) as e:  # a file deleted, a bag cut short, ...
+            log.exception("the source failed")
+            errors.append(
+                f"the source failed after frame {last_index} ({type(e).__name__}: {e}); the frames mapped so far are "
+                "kept and saved; fix the data and resume this run folder to go on"
+            )
+            break
+        bar.update(position + 1 + (stream.dropped if stream is not None else 0) - bar.n)  # frames read so far
+        eval_frames.add(position, frame)
+        if frame.index <= last_index:
+            continue
+        try:
+            s = mapper.integrate(frame)
+        except KeyboardInterrupt:
+            errors.append(f"interrupted during frame {frame.index}; the map up to frame {last_index} is saved")
+            break
+        except Exception as e:  # noqa: BLE001 - one bad frame must not lose the run
+            log.exception("mapping frame %d failed", frame.index)
+            failures += 1
+            errors.append(f"mapping frame {frame.index} failed ({type(e).__name__}: {e}); the frame was skipped")
+            if failures >= MAX_CONSECUTIVE_FAILURES:
+                errors.append(f"stopped after {failures} failed frames in a row; the map so far is saved")
+                break
+            continue
+        failures = 0
+        stats.append(s)
+        if recorder is not None:
+            recorder.after_frame(frame, s)
+        last_index = frame.index
+        bar.set_postfix(t=f"{s.map_time_s:.2f}s", it=s.iterations, vox=s.n_voxels, kf=s.n_keyframes)
+        failed = autosave.maybe_save(mapper, mapper.frames_done, lambda: run_state(last_index, stats))  # noqa: B023 - called now
+        if failed is not None and failed not in errors:
+            errors.append(failed)
+    bar.close()
+    if stream is not None:
+        frames.close()  # type: ignore[attr-defined]
+    return last_index
+
+
+def _save_outputs(mapper: Mapper, out: Path, last_index: int, stats: list[FrameStats], errors: list[str]) -> None:
+    """mesh.ply and checkpoint.pt; a failed write (disk full) is reported in `errors`, the autosave stays."""
+    try:
+        mapper.export_mesh(out / "mesh.ply")
+    except OSError as e:
+        errors.append(f"cannot write {out / 'mesh.ply'} ({e}); free space there and export it from the checkpoint")
+    try:
+        save_checkpoint(mapper, out / "checkpoint.pt", run_state(last_index, stats))
+    except CheckpointError as e:
+        errors.append(f"{e}; the last autosave in {out} is kept")
 
 
 def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:
@@ -198,7 +283,9 @@ def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:
     return time.perf_counter() - start
 
 
-def _write_stats(path: Path, stats: list[FrameStats], source: FrameSource, dropped: int, refine_s: float) -> None:
+def _write_stats(
+    path: Path, stats: list[FrameStats], source: FrameSource, dropped: int, refine_s: float, errors: list[str]
+) -> None:
     times = [s.map_time_s for s in stats]
     doc = {
         "frames": [dataclasses.asdict(s) for s in stats],
@@ -211,5 +298,9 @@ def _write_stats(path: Path, stats: list[FrameStats], source: FrameSource, dropp
             "refine_s": refine_s,
         },
         "skipped": [dataclasses.asdict(s) for s in source.skipped],
+        "errors": errors,
     }
-    path.write_text(json.dumps(doc, indent=1))
+    try:
+        path.write_text(json.dumps(doc, indent=1))
+    except OSError as e:
+        log.error("cannot write %s (%s); the checkpoint holds the same frame statistics", path, e)

@@ -108,6 +108,8 @@ class FrameStats:
     losses: dict[str, float] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     """Seconds per stage: allocation, keyframes, sampling, forward, backward, optimiser."""
+    keyframe_mb: float = 0.0
+    """Memory of the keyframes after this frame (rays, voxel lists, thumbnails), MB."""
 
 
 @dataclass(frozen=True)

@@ -7,16 +7,22 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from h2viz.config import MappingConfig
 from h2viz.errors import CheckpointError
+from h2viz.mapping import checkpoint_format
 from h2viz.mapping.backend import Backend
+from h2viz.mapping.keyframe_budget import BudgetReport
 from h2viz.mapping.mapper import Mapper
 from h2viz.mapping.rays import FrameRays
 from h2viz.types import RgbdFrame
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""2: only tensors, arrays and plain data, loaded with torch.load(weights_only=True); 1: pickled NumPy objects."""
+REQUIRED_KEYS = (
+    "format_version config octree priors_init priors field optim net_optim keyframes keyframe_frames thumbnails "
+    "trajectory frames_done max_depth_m rng"
+).split()
 
 
 def _keyframe_record(rays: FrameRays) -> dict[str, Any]:
@@ -42,7 +48,7 @@ def _keyframe_from_record(rec: dict[str, Any], backend: Backend) -> FrameRays:
 
 
 def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = None) -> None:
-    """Write the whole mapping state to `path` (a .pt file)."""
+    """Write the whole mapping state to `path` (a .pt file), atomically; `extra` holds plain data only."""
     state = {
         "format_version": FORMAT_VERSION,
         "config": dataclasses.asdict(mapper.cfg),
@@ -58,20 +64,15 @@ def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = N
         "keyframes": mapper.keyframes.state_dict(),
         "keyframe_frames": [_keyframe_record(r) for r in mapper.keyframe_rays],
         "thumbnails": mapper.thumbnails,
+        "keyframe_thinning": list(mapper.keyframe_budget.thinning),
+        "keyframe_budget": dataclasses.asdict(mapper.keyframe_budget.report),
         "trajectory": np.asarray(mapper.trajectory).reshape(-1, 4, 4),
         "frames_done": mapper.frames_done,
         "max_depth_m": mapper.max_depth_m,
         "rng": mapper.rng.get_state(),
         "extra": extra or {},
     }
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    try:
-        torch.save(state, tmp)
-        tmp.replace(path)
-    except OSError as e:
-        raise CheckpointError(f"cannot write checkpoint {path}: {e}; check the folder is writable") from e
+    checkpoint_format.write(state, Path(path))
 
 
 def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mapper, dict[str, Any]]:
@@ -79,12 +80,25 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist; pass the checkpoint.pt of an earlier run")
+    state = checkpoint_format.read(path)
+    version = state.get("format_version")
+    if version != FORMAT_VERSION:
+        raise CheckpointError(f"{path} has checkpoint format {version}, expected {FORMAT_VERSION}; map the run again")
+    missing = [key for key in REQUIRED_KEYS if key not in state]
+    if missing:
+        raise CheckpointError(f"{path} is incomplete: it lacks {', '.join(missing)}; resume from another checkpoint")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:  # noqa: BLE001 - any unpickling failure means the file is unusable
-        raise CheckpointError(f"{path} is not a readable h2viz checkpoint ({e})") from e
-    if state.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(f"{path} has checkpoint format {state.get('format_version')}, expected {FORMAT_VERSION}")
+        return _restore(state, cfg)
+    except CheckpointError as e:
+        raise CheckpointError(f"{path}: {e}") from None
+    except (KeyError, TypeError, ValueError, IndexError, RuntimeError, AttributeError) as e:
+        raise CheckpointError(
+            f"{path} is damaged or inconsistent ({type(e).__name__}: {e}); resume from another checkpoint"
+        ) from None
+
+
+def _restore(state: dict[str, Any], cfg: MappingConfig | None) -> tuple[Mapper, dict[str, Any]]:
+    """A Mapper rebuilt from a checkpoint's decoded state."""
     saved = MappingConfig(**state["config"])
     if cfg is not None:  # runtime-only settings may change on resume; the map's geometry may not
         saved = dataclasses.replace(
@@ -125,9 +139,27 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
         for rays in mapper.keyframe_rays:
             mapper.observed.add(mapper.octree, rays.voxel_points(1))
     mapper.thumbnails = list(state["thumbnails"])
+    budget = mapper.keyframe_budget
+    budget.thinning = [int(t) for t in state.get("keyframe_thinning", [0] * len(mapper.keyframe_rays))]
+    budget.report = BudgetReport(**state.get("keyframe_budget", {}))
     mapper.trajectory = list(state["trajectory"])
     mapper.frames_done = int(state["frames_done"])
     mapper.max_depth_m = float(state["max_depth_m"])
     mapper.rng.set_state(state["rng"])
     mapper.touched = np.ones(mapper.octree.n_voxels, dtype=bool)
-    return mapper, state["extra"]
+    return mapper, dict(state.get("extra") or {})
+
+
+def upgrade_checkpoint(path: Path, out: Path | None = None) -> Path:
+    """Re-save a format-1 checkpoint in this format (default: next to it, as <name>.v2.pt); returns the new path.
+    The old file is read without running code: only NumPy's array reconstruction is allowed besides tensors."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    state = checkpoint_format.read_legacy(path)
+    if state.get("format_version") not in (1, FORMAT_VERSION):
+        raise CheckpointError(f"{path} has checkpoint format {state.get('format_version')}, which cannot be upgraded")
+    out = Path(out) if out is not None else path.with_suffix(".v2.pt")
+    checkpoint_format.write({**state, "format_version": FORMAT_VERSION}, out)
+    load_checkpoint(out)  # it must load now
+    return out

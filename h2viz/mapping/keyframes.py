@@ -278,6 +278,53 @@ class KeyframeSet:
             self._bits.set_covered(None)
             self._round_member[:] = False
 
+    # -- retirement ----------------------------------------------------------------------------------
+    def remove(self, positions: list[int]) -> None:
+        """Drop the keyframes at `positions`; the others keep their order, round membership, covered voxels (those
+        still in a keyframe) and latest selection (renumbered)."""
+        drop = np.zeros(len(self._frames), bool)
+        drop[np.asarray(positions, np.int64)] = True
+        if not drop.any():
+            return
+        state = self.state_dict()
+        keep = np.flatnonzero(~drop)
+        offsets = state["offsets"]
+        new_pos = np.cumsum(~drop) - 1  # (n,) position after the removal, for the kept keyframes
+        ids = [state["voxel_ids"][offsets[j] : offsets[j + 1]] for j in keep]
+        remaining = np.unique(np.concatenate(ids)) if ids else np.zeros(0, np.int64)
+        covered = state["covered_ids"]
+        state.update(
+            frame_indices=state["frame_indices"][keep],
+            voxel_ids=np.concatenate(ids) if ids else np.zeros(0, np.int64),
+            offsets=np.r_[0, np.cumsum([a.size for a in ids], dtype=np.int64)],
+            covered_ids=covered[np.isin(covered, remaining)],
+            round_member=state["round_member"][keep],
+            selected=np.asarray([new_pos[j] for j in state["selected"] if not drop[j]], np.int64),
+        )
+        self.load_state_dict(state)
+
+    def unique_counts(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per keyframe: how many of its voxels no other keyframe saw (n,), and the mean number of other keyframes
+        that saw each of its voxels (n,) (how redundant it is)."""
+        if not self._ids:
+            return np.zeros(0, np.int64), np.zeros(0)
+        sizes = np.array([a.size for a in self._ids])
+        _, inverse, counts = np.unique(np.concatenate(self._ids), return_inverse=True, return_counts=True)
+        per_voxel = counts[inverse]  # (E,) keyframes seeing the voxel of each (keyframe, voxel) entry
+        row = np.repeat(np.arange(sizes.size), sizes)  # (E,) keyframe of each entry
+        unique = np.bincount(row, weights=per_voxel == 1, minlength=sizes.size).astype(np.int64)
+        others = np.bincount(row, weights=per_voxel - 1, minlength=sizes.size) / np.maximum(sizes, 1)
+        return unique, others
+
+    def covered_voxels(self) -> np.ndarray:
+        """Sorted ids of every voxel some keyframe saw."""
+        return self._known.copy()
+
+    def nbytes(self) -> int:
+        """Memory held by the voxel lists and coverage bitmaps, bytes."""
+        b = self._bits
+        return int(sum(a.nbytes for a in self._ids) + self._known.nbytes * 2 + b.words.nbytes + b.word_idx.nbytes)
+
     # -- inspection --------------------------------------------------------------------------------
     def __len__(self) -> int:
         return len(self._frames)

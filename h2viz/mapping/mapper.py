@@ -15,6 +15,7 @@ import trimesh
 from h2viz.config import MappingConfig
 from h2viz.mapping.backend import Backend, resolve_backend
 from h2viz.mapping.field import HybridField
+from h2viz.mapping.keyframe_budget import KeyframeBudget, keyframe_bytes
 from h2viz.mapping.keyframes import KeyframeSet
 from h2viz.mapping.losses import check_color_settings, color_error, mapping_losses
 from h2viz.mapping.mesh_job import FrozenField, MeshJob
@@ -66,6 +67,7 @@ class Mapper:
         )
         self.keyframe_rays: list[FrameRays] = []
         self.thumbnails: list[np.ndarray] = []
+        self.keyframe_budget = KeyframeBudget(cfg.keyframe_budget_mb)  # retires / thins keyframes past the budget
         self.mesher = ChunkedMesher(cfg.voxel_size_m, cfg.mesh_resolution, cfg.chunk_voxels, self.backend)
         self.touched = np.zeros(0, dtype=bool)  # (V,) voxels allocated or observed since the last mesh job
         self.trajectory: list[np.ndarray] = []
@@ -119,6 +121,7 @@ class Mapper:
             iterations=iters,
             n_voxels=self.octree.n_voxels,
             n_keyframes=len(self.keyframes),
+            keyframe_mb=self.keyframe_mb,
             losses=losses,
             timings=timer.seconds,
         )
@@ -169,6 +172,12 @@ class Mapper:
         h = 72
         w = max(1, round(frame.width * h / frame.height))
         self.thumbnails.append(cv2.resize(frame.rgb, (w, h), interpolation=cv2.INTER_AREA))
+        self.keyframe_budget.fit(self.keyframes, self.keyframe_rays, self.thumbnails)
+
+    @property
+    def keyframe_mb(self) -> float:
+        """Memory of the keyframes (rays, voxel lists, thumbnails), MB."""
+        return keyframe_bytes(self.keyframes, self.keyframe_rays, self.thumbnails) / 1e6
 
     def _batch(self, frames: list[FrameRays]) -> RayBatch:
         n = max(1, self.cfg.rays_per_iter // len(frames))

@@ -71,6 +71,16 @@ class FrameRays:
     def __len__(self) -> int:
         return int(self.valid.numel())
 
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the pixel ids, depth and colour, bytes."""
+        return sum(t.numel() * t.element_size() for t in (self.valid, self.depth, self.rgb))
+
+    def thin(self, step: int = 2) -> None:
+        """Keep every `step`-th valid pixel (the rest of the image stays out of training): a keyframe's rays in 1/step
+        of the memory, still spread over the whole image."""
+        self.valid, self.depth, self.rgb = (t[::step].clone() for t in (self.valid, self.depth, self.rgb))
+
     def directions(self, pixels: torch.Tensor) -> torch.Tensor:
         """World ray directions (N,3), z-normalised in the camera frame, of pixel ids (N,) (row-major, v * W + u)."""
         w = self.shape[1]

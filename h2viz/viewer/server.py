@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,7 @@ import viser
 from viser.theme import TitlebarConfig, TitlebarImage
 
 from h2viz.config import Config
-from h2viz.sources.base import make_source
+from h2viz.sources.base import FrameSource, make_source
 from h2viz.types import MapSnapshot
 from h2viz.viewer.layers import LayerSet
 from h2viz.viewer.panels import Panels
@@ -75,9 +76,7 @@ def make_viser_server(host: str, port: int, label: str = "h2viz") -> LocalViserS
 class Dashboard:
     """Serve the live map of `worker` at http://host:port (defaults from cfg.viewer)."""
 
-    def __init__(
-        self, worker: MappingWorker, cfg: Config, host: str | None = None, port: int | None = None
-    ) -> None:
+    def __init__(self, worker: MappingWorker, cfg: Config, host: str | None = None, port: int | None = None) -> None:
         self.worker, self.cfg = worker, cfg
         self.server = make_viser_server(host or cfg.viewer.host, cfg.viewer.port if port is None else port)
         self.layers = LayerSet(self.server.scene, frustum_scale=max(0.05, 1.0 * cfg.mapping.voxel_size_m))
@@ -94,6 +93,7 @@ class Dashboard:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="h2viz-dashboard", daemon=True)
         self.server.on_client_connect(self._count_viewers)
+        self.server.on_client_connect(self._greet)
         self.server.on_client_disconnect(self._count_viewers)
         self._count_viewers()
 
@@ -174,6 +174,11 @@ class Dashboard:
                 client.add_notification("Mapping problem", message, auto_close_seconds=15.0, color="red")
         self._errors_shown = len(errors)
 
+    def _greet(self, client: Any) -> None:
+        """Show a newly connected browser the worker's notices (a resumed run, an earlier run's autosave)."""
+        for notice in self.worker.notices:
+            client.add_notification("Earlier run", notice, auto_close_seconds=30.0, color="blue")
+
     def _count_viewers(self, _client: Any = None) -> None:
         """Tell the worker how many browsers are connected (it keeps the live mesh only for someone)."""
         self.worker.set_viewers(self.client_count())
@@ -204,17 +209,41 @@ class RunningView:
         self.worker.stop()
 
 
-def build_worker(cfg: Config) -> MappingWorker:
-    """Open the configured source and a fresh mapper (the mapper module imports torch)."""
+def run_folder(cfg: Config) -> Path:
+    """Where the dashboard autosaves and saves checkpoints (cfg.out_dir, default outputs/)."""
+    return Path(cfg.out_dir or "outputs")
+
+
+def build_worker(cfg: Config, resume: Path | None = None, source: FrameSource | None = None) -> MappingWorker:
+    """Open the configured source (or take `source`) and a fresh mapper, or the mapper of a checkpoint (a file, or
+    the newest in a run folder) to continue after its last frame; autosaves go to the run folder (the mapper module
+    imports torch)."""
+    from h2viz.mapping.autosave import find_checkpoint, keep_earlier_autosave, run_progress
+    from h2viz.mapping.checkpoint import load_checkpoint
     from h2viz.mapping.mapper import Mapper
 
-    source = make_source(cfg.source)
-    return MappingWorker(source, Mapper(cfg.mapping), cfg)
+    source = source or make_source(cfg.source)
+    folder = run_folder(cfg)
+    if resume is None:
+        kept = keep_earlier_autosave(folder)
+        worker = MappingWorker(source, Mapper(cfg.mapping), cfg, autosave_dir=folder)
+        if kept is not None:
+            worker.notices.append(
+                f"An earlier run's autosave is kept as {kept}. To continue that run instead, restart with "
+                f"`h2viz view --resume {kept}`."
+            )
+        return worker
+    path = find_checkpoint(resume)
+    mapper, extra = load_checkpoint(path, cfg.mapping)
+    last, stats = run_progress(path, extra)
+    worker = MappingWorker(source, mapper, cfg, autosave_dir=folder, resumed=(last, stats))
+    worker.notices.append(f"Resumed from {path}: {len(stats)} frames were mapped; mapping goes on after frame {last}.")
+    return worker
 
 
-def start_view(cfg: Config, worker: MappingWorker | None = None) -> RunningView:
+def start_view(cfg: Config, worker: MappingWorker | None = None, resume: Path | None = None) -> RunningView:
     """Start mapping and serve the dashboard on cfg.viewer.host:port; returns at once."""
-    worker = worker or build_worker(cfg)
+    worker = worker or build_worker(cfg, resume)
     dashboard = Dashboard(worker, cfg)
     try:
         worker.start()
@@ -227,9 +256,10 @@ def start_view(cfg: Config, worker: MappingWorker | None = None) -> RunningView:
     return RunningView(worker, dashboard)
 
 
-def run_view(cfg: Config, on_ready: Callable[[str], None] | None = None) -> None:
-    """Serve the live dashboard until Ctrl-C; `on_ready` receives the URL once it is up."""
-    view = start_view(cfg)
+def run_view(cfg: Config, on_ready: Callable[[str], None] | None = None, resume: Path | None = None) -> None:
+    """Serve the live dashboard until Ctrl-C; `on_ready` receives the URL once it is up; `resume` continues the run of
+    a checkpoint or run folder."""
+    view = start_view(cfg, resume=resume)
     if on_ready is not None:
         on_ready(view.url)
     try:

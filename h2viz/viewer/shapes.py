@@ -35,9 +35,18 @@ def cube_edges(cells: np.ndarray, cell_size_m: float) -> np.ndarray:
     return (np.stack([starts, ends], axis=1) * cell_size_m).astype(np.float32)
 
 
-def trajectory_segments(trajectory: np.ndarray) -> np.ndarray:
-    """Consecutive camera positions of poses (N,4,4) as segments (N-1,2,3) float32."""
+MAX_TRAJECTORY_SEGMENTS = 4096
+"""Segments the trajectory is drawn with at most: a long run's path is resent with every new pose, so beyond this
+every k-th pose is drawn (and the newest), keeping each update's size bounded instead of growing with the run."""
+
+
+def trajectory_segments(trajectory: np.ndarray, max_segments: int = MAX_TRAJECTORY_SEGMENTS) -> np.ndarray:
+    """Consecutive camera positions of poses (N,4,4) as segments (M,2,3) float32: M = N-1, or at most `max_segments`
+    through every k-th pose and the newest."""
     p = trajectory[:, :3, 3]
+    k = -(-(len(p) - 1) // max_segments) if len(p) > max_segments + 1 else 1
+    if k > 1:
+        p = np.concatenate([p[:-1:k], p[-1:]])
     return np.stack([p[:-1], p[1:]], axis=1).astype(np.float32)
 
 

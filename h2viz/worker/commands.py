@@ -40,7 +40,7 @@ class CommandServing:
     _mesh_dirty: bool
     _last_map_s: float
     _refine_left: int
-    _stats: list[FrameStats]
+    _stats: deque[FrameStats]
 
     def _publish(self) -> None:
         raise NotImplementedError
@@ -52,6 +52,10 @@ class CommandServing:
         raise NotImplementedError
 
     def _between_steps(self) -> None:
+        raise NotImplementedError
+
+    def _on_request_failure(self, kind: str, error: Exception) -> None:
+        """A request failed for a reason other than a bad request (H2vizError): make it visible, keep the work."""
         raise NotImplementedError
 
     def _queue_refinement(self, args: dict[str, Any]) -> int:
@@ -77,6 +81,8 @@ class CommandServing:
             except Exception as e:  # a bad request fails its own Future, never the worker
                 log.warning("command %s failed: %s", cmd.kind, e)
                 requests.settle(cmd.reply, error=e)
+                if not isinstance(e, H2vizError):
+                    self._on_request_failure(cmd.kind, e)
             try:
                 cmd = self._commands.get_nowait()
             except queue.Empty:
@@ -146,6 +152,8 @@ class CommandServing:
                 self._renders.popleft()
                 log.warning("render failed: %s", e)
                 requests.settle(cmd.reply, error=e)
+                if not isinstance(e, H2vizError):
+                    self._on_request_failure("render", e)
 
     def _fail_pending(self, error: BaseException) -> None:
         for cmd, _ in self._renders:

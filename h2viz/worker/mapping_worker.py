@@ -20,6 +20,7 @@ import numpy as np
 
 from h2viz.config import Config
 from h2viz.errors import H2vizError
+from h2viz.mapping.autosave import Autosaver, run_state
 from h2viz.types import Command, FrameStats, MapSnapshot, RgbdFrame
 from h2viz.worker import requests
 from h2viz.worker.commands import CommandServing
@@ -41,6 +42,8 @@ IDLE_REFRESH_S = 1.0  # same while mapping is paused or finished (until every ch
 REFINE_SLICE = 5  # refinement steps between two looks at commands, renders and the mesh
 MESH_DEADLINE_S = 0.3  # a mesh job still on its required chunks this long after submission gets the cores to itself
 MESH_WAIT_MAX_S = 2.0  # ... for at most this long at a time
+REQUEST_FAULT_AUTOSAVE_S = 60.0  # a failing render or export autosaves at most this often (renders come in streams)
+STATS_KEPT = 2000  # per-frame stats the snapshots carry (the plots show the latest); older ones are counted only
 
 
 def rss_mb() -> float:
@@ -57,8 +60,16 @@ class MappingWorker(CommandServing):
     its state from `slot` (a LatestSlot of MapSnapshot)."""
 
     def __init__(
-        self, source: FrameSource, mapper: Mapper, cfg: Config, settings: WorkerSettings | None = None
+        self,
+        source: FrameSource,
+        mapper: Mapper,
+        cfg: Config,
+        settings: WorkerSettings | None = None,
+        autosave_dir: Path | None = None,
+        resumed: tuple[int, list[FrameStats]] | None = None,
     ) -> None:
+        """`autosave_dir`: where autosave.pt is written (cfg.autosave; None = no autosave); `resumed`: the last
+        frame index a resumed mapper mapped (frames up to it are passed over) and its frames' stats."""
         self.source, self.mapper, self.cfg = source, mapper, cfg
         self.mapper.mesh_resolution = cfg.viewer.live_mesh_resolution  # downloads use cfg.mapping.mesh_resolution
         self.mapper.on_iteration = self._between_steps
@@ -72,7 +83,18 @@ class MappingWorker(CommandServing):
         self._finished = False
         self._steps: deque[Future[Any]] = deque()
         self._renders: deque[tuple[Command, Any]] = deque()  # (command, band generator)
-        self._stats: list[FrameStats] = []
+        self._resume_after, earlier = resumed or (-1, [])
+        self._stats: deque[FrameStats] = deque(earlier, maxlen=STATS_KEPT)
+        self._n_mapped = len(earlier)  # frames mapped, with those of the run resumed
+        self._last_index = self._resume_after
+        self._autosave = (
+            Autosaver(autosave_dir, cfg.autosave, self._n_mapped, writer=requests.save_checkpoint)
+            if autosave_dir is not None
+            else None
+        )
+        self._mesh_errors_seen = 0
+        self._request_fault_t = -np.inf  # time.monotonic() of the last autosave after a failed request
+        self.notices: list[str] = []  # what the dashboard tells each browser that connects (an earlier run...)
         self._poses: list[np.ndarray] = []
         self._current: RgbdFrame | None = None
         self._metrics: dict[str, float] = {}
@@ -186,10 +208,12 @@ class MappingWorker(CommandServing):
                     self._refine_slice()
                 elif not self.meshing.busy:  # bring stale chunks up to date while nothing maps
                     self._submit_mesh(IDLE_REFRESH_S)
+                self._after_mesh_failure()
         except Exception as e:  # keep the process alive, make the failure visible
             log.exception("the mapping worker failed")
             self._fatal = e
-            self._errors.append(f"mapping stopped: {type(e).__name__}: {e}")
+            saved = self._autosave_now()
+            self._errors.append(f"mapping stopped: {type(e).__name__}: {e}; {saved}restart the dashboard to go on")
             self._fail_pending(e)
         finally:
             self._feed.stop()
@@ -207,7 +231,7 @@ class MappingWorker(CommandServing):
             if self._gt is not None:
                 self._refresh_metrics()
             self._publish()
-        elif item is not None:
+        elif item is not None and item.index > self._resume_after:  # a resumed run passes over what it mapped
             self._integrate(item)
 
     def _integrate(self, frame: RgbdFrame) -> None:
@@ -222,15 +246,62 @@ class MappingWorker(CommandServing):
         self._consecutive = 0
         self._unmeshed += 1
         self._stats.append(stats)
+        self._n_mapped += 1
+        self._last_index = frame.index
         self._poses.append(frame.T_world_camera)
         self._current = frame
         every = self.settings.metrics_every
-        if self.live and self._gt is not None and every > 0 and len(self._stats) % every == 0:
+        if self.live and self._gt is not None and every > 0 and self._n_mapped % every == 0:
             self._refresh_metrics()
         if self.live and self._mesh_due() and (self._mesh_dirty or not self.meshing.busy):
             self._submit_mesh(REFRESH_S)  # not while a job runs: freezing the field costs ~15 ms a frame
         self._resolve_steps(stats)
+        if self._autosave is not None:
+            failed = self._autosave.maybe_save(self.mapper, self._n_mapped, self._autosave_extra)
+            if failed is not None:
+                self._errors.append(failed)
         self._publish()
+
+    # -- keeping the work ----------------------------------------------------------------------
+    def _autosave_extra(self) -> dict[str, Any]:
+        """A checkpoint's run state: where to continue and the frames' stats (as `h2viz map` writes them)."""
+        return run_state(self._last_index, self._stats)
+
+    def _autosave_now(self) -> str:
+        """Autosave after a failure; the words that say so for the failure's message ('' without autosave)."""
+        if self._autosave is None or self._n_mapped == 0:
+            return ""
+        try:
+            failed = self._autosave.save(self.mapper, self._n_mapped, self._autosave_extra())
+        except Exception as e:  # noqa: BLE001 - a mapper broken beyond saving: say so, keep the old autosave
+            failed = f"autosave failed ({type(e).__name__}: {e})"
+        if failed is not None:
+            return f"{failed}; "
+        return f"the map so far is saved in {self._autosave.path}; "
+
+    def _on_request_failure(self, kind: str, error: Exception) -> None:
+        """(mapping thread) A render, export or save that failed unexpectedly: autosave (at most once a minute) and
+        say what failed and what goes on; the browser that asked was told through its request."""
+        now = time.monotonic()
+        saved = ""
+        if now - self._request_fault_t >= REQUEST_FAULT_AUTOSAVE_S:
+            self._request_fault_t = now
+            saved = self._autosave_now()
+        what = {"render": "a view render", "export": "a mesh export", "save": "saving a checkpoint"}.get(kind, kind)
+        self._errors.append(
+            f"{what} failed ({type(error).__name__}: {error}); {saved}mapping goes on; try it again, or with a smaller "
+            "image or another format"
+        )
+
+    def _after_mesh_failure(self) -> None:
+        """(mapping thread) Autosave once after the mesh thread reported new failures, and say what to do."""
+        errors = self.meshing.errors
+        if len(errors) > self._mesh_errors_seen:
+            self._mesh_errors_seen = len(errors)
+            saved = self._autosave_now()
+            self._errors.append(
+                f"the live mesh could not be updated; {saved}mapping goes on and the next update retries"
+            )
 
     def _between_steps(self) -> None:
         """(mapping thread, between optimisation steps and render bands) A mesh job that is late with a frame's
@@ -257,7 +328,11 @@ class MappingWorker(CommandServing):
         log.exception("mapping frame %d failed", frame.index)
         self._failures += 1
         self._consecutive += 1
-        self._errors.append(f"frame {frame.index} ({frame.name or 'no name'}): {type(e).__name__}: {e}")
+        saved = self._autosave_now() if self._consecutive == 1 else ""
+        self._errors.append(
+            f"frame {frame.index} ({frame.name or 'no name'}): {type(e).__name__}: {e}; the frame was skipped; {saved}"
+            "mapping goes on"
+        )
         if self._consecutive >= MAX_CONSECUTIVE_FAILURES and not self._paused:
             n = self._consecutive
             self._errors.append(f"mapping paused after {n} failures in a row; press Resume to retry")
@@ -317,7 +392,7 @@ class MappingWorker(CommandServing):
             self._version += 1
             snap = MapSnapshot(
                 version=self._version,
-                frames_done=len(self._stats),
+                frames_done=self._n_mapped,
                 frames_total=self._feed.total(),
                 chunks=self._chunks_out,
                 voxel_size_m=float(m.voxel_size_m),

@@ -108,7 +108,7 @@ def export_mesh_bytes(mapper: Mapper, fmt: str, resolution: int | None = None) -
     return data if isinstance(data, bytes) else str(data).encode()
 
 
-def save_checkpoint(mapper: Mapper, path: str | Path) -> str:
+def save_checkpoint(mapper: Mapper, path: str | Path, extra: dict[str, Any] | None = None) -> str:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if hasattr(mapper, "save_checkpoint"):
@@ -116,7 +116,7 @@ def save_checkpoint(mapper: Mapper, path: str | Path) -> str:
     else:
         from h2viz.mapping.checkpoint import save_checkpoint as save
 
-        save(mapper, path)
+        save(mapper, path, extra)
     return str(path)
 
 

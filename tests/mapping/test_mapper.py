@@ -182,7 +182,7 @@ def test_a_checkpoint_without_observed_cells_rebuilds_them_from_its_keyframes(tm
     for i, T in enumerate(orbit(scene, 6, 1.4, 0.4, scene.center)[:3]):
         mapper.integrate(scene.frame(i, T))
     save_checkpoint(mapper, tmp_path / "ck.pt")
-    state = torch.load(tmp_path / "ck.pt", weights_only=False)
+    state = torch.load(tmp_path / "ck.pt", weights_only=True)
     del state["observed"]  # as saved before meshing kept observed cells
     torch.save(state, tmp_path / "old.pt")
     again, _ = load_checkpoint(tmp_path / "old.pt")

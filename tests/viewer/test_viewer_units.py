@@ -20,12 +20,14 @@ from h2viz.viewer.glb import mesh_glb, srgb_to_linear_u8
 from h2viz.viewer.render_loop import FAR_M, background, client_view
 from h2viz.viewer.server import initial_view, make_viser_server
 from h2viz.viewer.shapes import (
+    MAX_TRAJECTORY_SEGMENTS,
     colorize_depth,
     cube_edges,
     fov_aspect,
     frame_points,
     pose_from_wxyz,
     to_rgb8,
+    trajectory_segments,
     view_intrinsics,
     wxyz_position,
 )
@@ -243,3 +245,14 @@ def test_both_plots_are_logarithmic() -> None:
         np.testing.assert_allclose(panels.time_plot.data[1], [30000, 500, 500])
     finally:
         server.stop()
+
+
+def test_a_long_trajectory_is_drawn_with_a_bounded_number_of_segments() -> None:
+    poses = np.tile(np.eye(4), (10_001, 1, 1))
+    poses[:, 0, 3] = np.arange(10_001) * 0.01  # a straight walk of 100 m, 1 cm a frame
+    short = trajectory_segments(poses[:50])
+    assert short.shape == (49, 2, 3) and np.allclose(short[:, 1, 0] - short[:, 0, 0], 0.01)
+    seg = trajectory_segments(poses)
+    assert len(seg) <= MAX_TRAJECTORY_SEGMENTS and len(seg) > MAX_TRAJECTORY_SEGMENTS // 2
+    assert seg[0, 0, 0] == 0.0 and seg[-1, 1, 0] == pytest.approx(100.0)  # from the first pose to the newest
+    np.testing.assert_allclose(seg[1:, 0], seg[:-1, 1])  # one connected path

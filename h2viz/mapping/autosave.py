@@ -1,0 +1,120 @@
+"""Autosave of a run: the mapping state written to <run folder>/autosave.pt every N frames or M seconds (atomically,
+so a process killed mid-write leaves the previous autosave intact), and finding the newest checkpoint of a run
+folder to resume from."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from h2viz.config import AutosaveConfig
+from h2viz.errors import CheckpointError
+from h2viz.types import FrameStats
+
+if TYPE_CHECKING:
+    from h2viz.mapping.mapper import Mapper
+
+log = logging.getLogger("h2viz.autosave")
+Writer = Callable[[Any, Path, dict[str, Any]], Any]
+AUTOSAVE_NAME = "autosave.pt"
+
+
+def find_checkpoint(path: str | Path) -> Path:
+    """`path` itself when it is a checkpoint file; for a run folder, its newest checkpoint (*.pt: autosave.pt,
+    checkpoint.pt, the dashboard's checkpoint_<time>.pt), by modification time."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not path.is_dir():
+        raise CheckpointError(f"{path} does not exist; pass a run folder or a checkpoint .pt file to --resume")
+    found = sorted(path.glob("*.pt"), key=lambda p: (p.stat().st_mtime, p.name))
+    if not found:
+        raise CheckpointError(f"{path} holds no checkpoint (*.pt); pass the folder of a run that autosaved")
+    return found[-1]
+
+
+def run_progress(path: Path, extra: dict[str, Any]) -> tuple[int, list[FrameStats]]:
+    """From a checkpoint's `extra`: the index of the last frame mapped (-1: none) and the stats of the frames mapped."""
+    try:
+        stats = [FrameStats(**s) for s in extra.get("stats", [])]
+        return int(extra.get("last_index", -1)), stats
+    except (TypeError, ValueError) as e:
+        raise CheckpointError(f"{path}: its frame statistics do not match this version ({e})") from None
+
+
+def run_state(last_index: int, stats: list[FrameStats] | Iterable[FrameStats]) -> dict[str, Any]:
+    """The `extra` of a run's checkpoint: where to continue and the frames' stats (the inverse of run_progress)."""
+    return {"last_index": int(last_index), "stats": [dataclasses.asdict(s) for s in stats]}
+
+
+def keep_earlier_autosave(folder: str | Path) -> Path | None:
+    """Before a fresh run autosaves into `folder`: rename an earlier run's autosave.pt there to
+    autosave_<its time>.pt, so the new run never overwrites it; the new name, or None when there was none."""
+    path = Path(folder) / AUTOSAVE_NAME
+    if not path.is_file():
+        return None
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(path.stat().st_mtime))
+    kept = path.with_name(f"autosave_{stamp}.pt")
+    n = 1
+    while kept.exists():
+        kept, n = path.with_name(f"autosave_{stamp}_{n}.pt"), n + 1
+    path.rename(kept)
+    return kept
+
+
+class Autosaver:
+    """Writes the run folder's autosave.pt when `autosave.every_frames` frames or `autosave.every_s` seconds have
+    passed since the last one. A failed write (disk full, folder gone) is logged and reported, never raised: the
+    map stays in memory and the previous autosave stays valid."""
+
+    def __init__(
+        self,
+        folder: Path,
+        cfg: AutosaveConfig,
+        frames_done: int = 0,
+        clock: Callable[[], float] = time.monotonic,
+        writer: Writer | None = None,
+    ) -> None:
+        """`frames_done`: the frames mapped before this run (a resumed run's), where counting starts; `writer`
+        (mapper, path, extra) writes the checkpoint (default: save_checkpoint)."""
+        self.path = Path(folder) / AUTOSAVE_NAME
+        self.cfg, self._clock, self._writer = cfg, clock, writer
+        self._last_frames = frames_done
+        self._last_t = clock()
+        self.saves = 0
+        self.last_error: str | None = None
+
+    @property
+    def enabled(self) -> bool:
+        return self.cfg.every_frames > 0 or self.cfg.every_s > 0
+
+    def due(self, frames_done: int) -> bool:
+        """Whether an autosave is due after `frames_done` mapped frames."""
+        by_frames = self.cfg.every_frames > 0 and frames_done - self._last_frames >= self.cfg.every_frames
+        by_time = self.cfg.every_s > 0 and self._clock() - self._last_t >= self.cfg.every_s
+        return frames_done > self._last_frames and (by_frames or by_time)
+
+    def save(self, mapper: Mapper, frames_done: int, extra: dict[str, Any]) -> str | None:
+        """Write the autosave now; None, or the message of a failed write."""
+        from h2viz.mapping.checkpoint import save_checkpoint
+
+        self._last_frames, self._last_t = frames_done, self._clock()
+        try:
+            (self._writer or save_checkpoint)(mapper, self.path, extra)
+        except (CheckpointError, OSError) as e:
+            self.last_error = f"autosave failed: {e}; mapping goes on, the previous autosave is kept"
+            log.error("%s", self.last_error)
+            return self.last_error
+        self.saves += 1
+        self.last_error = None
+        return None
+
+    def maybe_save(self, mapper: Mapper, frames_done: int, extra: Callable[[], dict[str, Any]]) -> str | None:
+        """`save` when one is due (`extra` is called only then); None, or the message of a failed write."""
+        if not self.enabled or not self.due(frames_done):
+            return None
+        return self.save(mapper, frames_done, extra())
