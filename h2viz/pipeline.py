@@ -7,7 +7,6 @@ import dataclasses
 import json
 import logging
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,8 @@ from h2viz.mapping.checkpoint import load_checkpoint, save_checkpoint
 from h2viz.mapping.mapper import Mapper
 from h2viz.sources.base import FrameSource, make_source
 from h2viz.types import FrameStats, RgbdFrame
-from h2viz.worker.feed import END, FrameFeed, WorkerSettings
+from h2viz.worker.anytime_run import AnytimeRun, AnytimeTotals
+from h2viz.worker.feed import FrameFeed, WorkerSettings, realtime_from_config
 
 log = logging.getLogger("h2viz.map")
 
@@ -35,11 +35,16 @@ class RunResult:
     stats: list[FrameStats]
     metrics: dict[str, Any] = field(default_factory=dict)
     skipped: int = 0
-    dropped: int = 0  # real-time mode: frames that arrived while the mapper was busy
+    dropped: int = 0  # real-time mode: frames integration could not keep up with
     refine_s: float = 0.0  # seconds of mapping.refine_iters steps after the last frame
+    anytime: AnytimeTotals | None = None  # real-time mode: frames integrated / dropped, steps, sharpening
 
     def summary(self) -> str:
         line = f"mapped {len(self.stats)} frames ({self.skipped} skipped, {self.dropped} dropped)"
+        if self.anytime is not None:
+            a = self.anytime
+            line = f"integrated {a.integrated} of {a.arrived} frames ({self.skipped} skipped, {a.dropped} dropped)"
+            line += f"; {a.stream_steps} steps during the stream, {a.sharpen_steps} after it ({a.sharpen_s:.1f} s)"
         if self.stats:
             times = np.array([s.map_time_s for s in self.stats])
             line += f"; per-frame time median {np.median(times):.3f} s, p90 {np.percentile(times, 90):.3f} s"
@@ -105,30 +110,6 @@ def evaluate(
     return metrics
 
 
-class RealtimeStream:
-    """The source played at its timestamps' own rate; when the mapper is busy, only the newest frame waits and
-    older unmapped ones are dropped (counted in `dropped`)."""
-
-    def __init__(self, source: FrameSource, cfg: Config) -> None:
-        settings = WorkerSettings(realtime=True, stride=max(1, cfg.source.stride))
-        self._feed = FrameFeed(source, settings, cfg.source.max_frames)
-
-    @property
-    def dropped(self) -> int:
-        return self._feed.dropped
-
-    def __iter__(self) -> Iterator[tuple[int, RgbdFrame]]:
-        self._feed.start()
-        try:
-            position = 0
-            while (item := self._feed.take(timeout_s=1.0)) is not END:
-                if item is not None:
-                    yield position, item
-                    position += 1
-        finally:
-            self._feed.stop()
-
-
 def run_map(
     cfg: Config,
     resume: Path | None = None,
@@ -136,28 +117,24 @@ def run_map(
     progress: bool = True,
     realtime: bool = False,
 ) -> RunResult:
-    """Map every frame of the configured source (or, in real-time mode, the newest frame whenever the mapper is
-    free) and write the run's outputs."""
+    """Map every frame of the configured source (or, in real-time mode, as it arrives at the source's own rate:
+    see `_map_anytime`) and write the run's outputs."""
     source = make_source(cfg.source)
     out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     dump_config(cfg, out / "config.yaml")
     mapper, last_index = _open_mapper(cfg, resume)
+    realtime = realtime or realtime_from_config(cfg)
     gt = _ground_truth(source, gt_mesh)
     total = len(source)
     eval_frames = EvalFrames(total, cfg.eval.n_interpolate)
-    stats: list[FrameStats] = []
     bar = tqdm(total=total, disable=not progress, unit="frame", dynamic_ncols=True)
-    stream = RealtimeStream(source, cfg) if realtime else None
-    for position, frame in stream if stream is not None else enumerate(source):
-        bar.update(position + 1 + (stream.dropped if stream is not None else 0) - bar.n)  # frames read so far
-        eval_frames.add(position, frame)
-        if frame.index <= last_index:
-            continue
-        s = mapper.integrate(frame)
-        stats.append(s)
-        last_index = frame.index
-        bar.set_postfix(t=f"{s.map_time_s:.2f}s", it=s.iterations, vox=s.n_voxels, kf=s.n_keyframes)
+    anytime = None
+    if realtime:
+        stats, anytime = _map_anytime(source, mapper, cfg, eval_frames, last_index, bar)
+        last_index = stats[-1].index if stats else last_index
+    else:
+        stats, last_index = _map_every_frame(source, mapper, eval_frames, last_index, bar)
     bar.close()
     refine_s = _refine(mapper, cfg.mapping.refine_iters, progress)
     mapper.update_mesh()
@@ -167,9 +144,54 @@ def run_map(
     metrics = evaluate(mapper, mesh, gt, eval_frames, cfg) if gt is not None else {}
     if metrics:
         write_metrics(metrics, out / "metrics.json")
-    dropped = stream.dropped if stream is not None else 0
-    _write_stats(out / "stats.json", stats, source, dropped, refine_s)
-    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s)
+    totals = anytime.totals if anytime is not None else None
+    _write_stats(out / "stats.json", stats, source, totals, refine_s)
+    dropped = totals.dropped if totals is not None else 0
+    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s, totals)
+
+
+def _map_every_frame(
+    source: FrameSource, mapper: Mapper, eval_frames: EvalFrames, last_index: int, bar: tqdm
+) -> tuple[list[FrameStats], int]:
+    """Every frame in order, each with up to mapping.max_iters steps (the paper's protocol)."""
+    stats: list[FrameStats] = []
+    for position, frame in enumerate(source):
+        bar.update(position + 1 - bar.n)  # frames read so far
+        eval_frames.add(position, frame)
+        if frame.index <= last_index:
+            continue
+        s = mapper.integrate(frame)
+        stats.append(s)
+        last_index = frame.index
+        bar.set_postfix(t=f"{s.map_time_s:.2f}s", it=s.iterations, vox=s.n_voxels, kf=s.n_keyframes)
+    return stats, last_index
+
+
+def _map_anytime(
+    source: FrameSource, mapper: Mapper, cfg: Config, eval_frames: EvalFrames, last_index: int, bar: tqdm
+) -> tuple[list[FrameStats], AnytimeRun]:
+    """The source played at its own rate: every frame integrated as it arrives, optimisation between frames, then
+    until the loss plateaus (anytime.*)."""
+    settings = WorkerSettings(realtime=True, stride=max(1, cfg.source.stride))
+    feed = FrameFeed(source, settings, cfg.source.max_frames, cfg.anytime.backlog_frames)
+    run = AnytimeRun(mapper, feed, cfg.anytime)
+    position = 0
+
+    def arrived(frame: RgbdFrame) -> bool:
+        nonlocal position
+        eval_frames.add(position, frame)
+        position += 1
+        bar.update(position + feed.dropped - bar.n)
+        bar.set_postfix(steps=run.totals.stream_steps, dropped=feed.dropped, vox=mapper.octree.n_voxels)
+        return frame.index > last_index
+
+    feed.start()
+    try:
+        run.stream(arrived)
+    finally:
+        feed.stop()
+    run.sharpen()
+    return run.stats, run
 
 
 def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:
@@ -182,7 +204,9 @@ def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:
     return time.perf_counter() - start
 
 
-def _write_stats(path: Path, stats: list[FrameStats], source: FrameSource, dropped: int, refine_s: float) -> None:
+def _write_stats(
+    path: Path, stats: list[FrameStats], source: FrameSource, anytime: AnytimeTotals | None, refine_s: float
+) -> None:
     times = [s.map_time_s for s in stats]
     doc = {
         "frames": [dataclasses.asdict(s) for s in stats],
@@ -191,9 +215,10 @@ def _write_stats(path: Path, stats: list[FrameStats], source: FrameSource, dropp
             "median_map_time_s": float(np.median(times)) if times else None,
             "p90_map_time_s": float(np.percentile(times, 90)) if times else None,
             "mean_iterations": float(np.mean([s.iterations for s in stats])) if stats else None,
-            "dropped_frames": dropped,
+            "dropped_frames": anytime.dropped if anytime is not None else 0,
             "refine_s": refine_s,
         },
+        "realtime": None if anytime is None else {**dataclasses.asdict(anytime), "arrived": anytime.arrived},
         "skipped": [dataclasses.asdict(s) for s in source.skipped],
     }
     path.write_text(json.dumps(doc, indent=1))

@@ -1,5 +1,6 @@
 """The worker's live settings and the frame feed: a reader thread that loads frames ahead of the
-mapper, either every frame in order or, in real-time mode, the newest one at the frames' own rate."""
+mapper, either every frame in order or, in real-time mode, each frame at the stream's own rate (every one kept
+until it is integrated, up to a backlog; frames beyond it, and those a slow reader passes over, are counted)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ END = object()  # marks the end of the frame stream
 class WorkerSettings:
     """What Commands of kind `set` may change while the worker runs."""
 
-    realtime: bool = False  # map the newest frame, drop the older ones
+    realtime: bool = False  # play at the stream's rate; integrate every frame, optimise between frames
     stride: int = 1  # use every k-th frame of the source
     mesh_every: int = 5  # with mesh_update_hz = 0: mesh every this many frames (0 = when idle and at the end)
     mesh_update_hz: float = 2.0  # mesh after every frame; publish mesh changes at most this often (0 = no live)
@@ -35,10 +36,13 @@ class WorkerSettings:
 
 class FrameFeed:
     """Reads frames on its own thread; every-frame mode queues two ahead, real-time mode plays at
-    the frames' timestamp rate and keeps only the newest unmapped frame (replaced ones are dropped)."""
+    the frames' timestamp rate and keeps every frame that arrives until it is taken, up to `backlog` waiting
+    frames: when that many wait, the oldest is dropped (counted in `dropped`, as are frames the reader was too
+    slow to read in time)."""
 
-    def __init__(self, source: FrameSource, settings: WorkerSettings, max_frames: int) -> None:
+    def __init__(self, source: FrameSource, settings: WorkerSettings, max_frames: int, backlog: int = 30) -> None:
         self._source, self._settings, self._max_frames = source, settings, max_frames
+        self._backlog = max(1, int(backlog))
         self._items = list(enumerate(source.keys()))  # (position, key) before stride
         self._cond = threading.Condition()
         self._frames: deque[Any] = deque()
@@ -67,6 +71,11 @@ class FrameFeed:
         remaining = math.ceil(max(0, len(self._items) - self._position) / stride)
         total = self.read + remaining
         return min(total, self._max_frames) if self._max_frames > 0 else total
+
+    def ready(self) -> bool:
+        """A frame (or the end of the stream) is waiting to be taken."""
+        with self._cond:
+            return bool(self._frames)
 
     def take(self, timeout_s: float) -> Any:
         """The next frame, END when the stream is over, or None when nothing arrived in time."""
@@ -126,17 +135,22 @@ class FrameFeed:
             clock = (time.monotonic(), frame.timestamp)
         self._stop.wait(max(0.0, clock[0] + (frame.timestamp - clock[1]) - time.monotonic()))
         with self._cond:
-            if self._frames and self._frames[-1] is not END:
-                self._frames.pop()
+            while len(self._frames) >= self._backlog and self._frames[0] is not END:
+                self._frames.popleft()  # integration fell a whole backlog behind the stream
                 self.dropped += 1
             self._frames.append(frame)
             self._cond.notify_all()
         return clock
 
 
+def realtime_from_config(cfg: Config) -> bool:
+    """Real-time mode: viewer.realtime, or a bag with source.rosbag.realtime."""
+    return cfg.viewer.realtime or (cfg.source.format == "rosbag" and cfg.source.rosbag.realtime)
+
+
 def settings_from_config(cfg: Config) -> WorkerSettings:
     return WorkerSettings(
-        realtime=cfg.viewer.realtime,
+        realtime=realtime_from_config(cfg),
         stride=max(1, cfg.source.stride),
         mesh_every=cfg.mapping.mesh_every,
         mesh_update_hz=cfg.viewer.mesh_update_hz,
