@@ -52,17 +52,18 @@ def check_anytime(cfg: AnytimeConfig) -> None:
 class AnytimeSchedule:
     """Integration first, with optimisation owed `opt_share` of the mapping time.
 
-    Every integration of c seconds makes optimisation owed c * share / (1 - share) seconds; each step pays off its
-    own seconds. A waiting frame is integrated unless a step is owed; with no frame waiting, steps run freely (that
-    time is not banked: when frames come faster again they are integrated at once). Over any stretch where frames
-    keep waiting, steps therefore take at least `opt_share` of the time and integration the rest.
+    Every integration of c seconds makes optimisation owed c * share / (1 - share) seconds. A waiting frame is
+    integrated unless a step is owed; a step taken while one is owed pays its seconds off, and what it overpays
+    (a step is longer than what one frame owes) is credit the next integrations use first. With no frame waiting,
+    steps run freely and bank nothing, so that when frames come faster again they are integrated at once. Over any
+    stretch where frames keep waiting, steps therefore take `opt_share` of the time and integration the rest.
     """
 
     def __init__(self, opt_share: float) -> None:
         if not 0.0 <= opt_share < 1.0:
             raise ConfigError(f"anytime.opt_share must lie in [0, 1), got {opt_share}")
         self.ratio = opt_share / (1.0 - opt_share)
-        self.owed_s = 0.0
+        self.owed_s = 0.0  # > 0: step time owed; < 0: credit from a step that overpaid
         self.integrated = 0
         self.steps = 0
         self.integrate_s = 0.0
@@ -84,7 +85,8 @@ class AnytimeSchedule:
     def did_step(self, seconds: float) -> None:
         self.steps += 1
         self.step_s += seconds
-        self.owed_s = max(0.0, self.owed_s - seconds)
+        if self.owed_s > 0.0:  # a step that was owed: its overpayment is credit; free steps bank nothing
+            self.owed_s -= seconds
 
 
 @dataclass

@@ -218,7 +218,8 @@ class Mapper:
         if self.field.color_prior is None:
             return
         k = max(1, -(-len(points) // max(1, color_points)))
-        rgb = torch.from_numpy(rays.rgb[::k].cpu().numpy().astype(np.float32) / np.float32(255.0)).to(self.device)  # (P/k,3)
+        rgb_u8 = rays.rgb[::k].cpu().numpy()  # (P/k,3) uint8; NumPy converts it ~10x faster than torch here
+        rgb = torch.from_numpy(rgb_u8.astype(np.float32) / np.float32(255.0)).to(self.device)
         self.field.add_colors(torch.from_numpy(points[::k]).to(self.device), rgb)
 
     @torch.no_grad()
