@@ -27,7 +27,9 @@ class AnytimeTotals:
     """What an anytime run did: frames integrated and dropped, optimisation steps and their seconds."""
 
     integrated: int = 0
-    dropped: int = 0
+    dropped: int = 0  # passed_over + overflowed
+    passed_over: int = 0  # due before the reader could read them (a slow source)
+    overflowed: int = 0  # pushed out of a full backlog (integration fell behind)
     stream_steps: int = 0  # steps while the stream ran
     sharpen_steps: int = 0  # steps after it ended
     sharpen_s: float = 0.0
@@ -68,6 +70,7 @@ class AnytimeRun:
                 self._integrate(item)
         self._close_newest()
         self.totals.dropped = self.feed.dropped
+        self.totals.passed_over, self.totals.overflowed = self.feed.passed_over, self.feed.overflowed
         self.totals.phase = Phase.SHARPENING.value
 
     def sharpen(self, seconds: float | None = None, stop: Callable[[], bool] | None = None) -> bool:

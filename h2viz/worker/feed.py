@@ -48,7 +48,9 @@ class FrameFeed:
         self._frames: deque[Any] = deque()
         self._stop = threading.Event()
         self._hold = threading.Event()  # set while mapping is paused (real-time clock stops)
-        self.dropped = 0
+        self.dropped = 0  # frames not delivered: passed_over + overflowed
+        self.passed_over = 0  # real-time mode: due before the reader got to them (a slow source)
+        self.overflowed = 0  # real-time mode: pushed out of a full backlog (integration fell behind)
         self.read = 0  # frames read or skipped so far
         self._position = 0
         self._thread = threading.Thread(target=self._run, name="h2viz-frames", daemon=True)
@@ -99,6 +101,7 @@ class FrameFeed:
                 if overdue:  # passed over without reading it
                     with self._cond:
                         self.dropped += 1
+                        self.passed_over += 1
                     continue
                 frame = self._source.get(*item)
                 if frame is not None:
@@ -138,6 +141,7 @@ class FrameFeed:
             while len(self._frames) >= self._backlog and self._frames[0] is not END:
                 self._frames.popleft()  # integration fell a whole backlog behind the stream
                 self.dropped += 1
+                self.overflowed += 1
             self._frames.append(frame)
             self._cond.notify_all()
         return clock
