@@ -177,14 +177,23 @@ class SlowRoomSource(BoxRoomSource):
 
 
 def test_realtime_mode_passes_over_overdue_frames_without_reading_them(make_worker: Factory) -> None:
-    source = SlowRoomSource(n=60)  # 2 s of stream; reading every frame would take 6 s
-    worker = make_worker(source, FakeMapper(), realtime=True)
-    assert worker.wait_finished(30)
+    source = SlowRoomSource(n=120)  # 4 s of stream; reading every frame would take 12 s
+    worker = make_worker(source, FakeMapper(), cfg=anytime_cfg(backlog_frames=4), realtime=True)
+    assert worker.wait_finished(40)
     snap = worker.slot.get()[1]
-    assert snap.frames_done + snap.dropped == 60
-    assert len(source.loaded) < 40  # only frames due when the reader got to them (about one in three)
-    assert source.loaded == sorted(source.loaded) and source.loaded[-1] == 59
-    assert snap.stats[-1].index == 59
+    assert snap.frames_done + snap.dropped == 120
+    # frames a whole backlog behind the stream's clock are passed over unread (about two in three here)...
+    assert len(source.loaded) < 60 and worker._feed.passed_over > 50
+    assert source.loaded == sorted(source.loaded) and source.loaded[-1] == 119
+    assert snap.stats[-1].index == 119
+
+
+def test_a_late_reader_still_delivers_every_frame_within_the_backlog(make_worker: Factory) -> None:
+    source = SlowRoomSource(n=20)  # ...while a reader less than a backlog behind reads them all
+    worker = make_worker(source, FakeMapper(), cfg=anytime_cfg(backlog_frames=30), realtime=True)
+    assert worker.wait_finished(40)
+    snap = worker.slot.get()[1]
+    assert snap.dropped == 0 and [s.index for s in snap.stats] == list(range(20))
 
 
 def test_pause_step_resume(make_worker: Factory) -> None:

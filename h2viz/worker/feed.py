@@ -113,12 +113,14 @@ class FrameFeed:
             self._cond.notify_all()
 
     def _overdue(self, clock: tuple[float, float] | None) -> bool:
-        """Real-time playback whose reading fell behind (a slow source, or a rendered one): when the frame after
-        the current one is due already by the stream's clock, the current one is passed over without reading it
-        (sources that know timestamps before loading; the others are read and then dropped)."""
+        """Real-time playback whose reading fell behind (a slow source, or a rendered one): when the frame a whole
+        backlog after the current one is due already by the stream's clock, the current one would be pushed out of
+        the backlog anyway, and is passed over without reading it (sources that know timestamps before loading; the
+        others are read and then dropped). A reader that is merely late (its thread waited for the CPU) still
+        delivers every frame."""
         if not self._settings.realtime or clock is None or self._hold.is_set():
             return False
-        following = self._position + max(1, self._settings.stride)
+        following = self._position + self._backlog * max(1, self._settings.stride)
         if following >= len(self._items):
             return False
         due = self._source.timestamp(*self._items[following])
