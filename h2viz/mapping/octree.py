@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from h2viz.mapping.kernels import kernel_module
+
 OFFSET = 1 << 20
 CORNER_OFFSETS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=np.int64)  # (8,3)
 FACE_DIRS = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64)
@@ -154,22 +156,40 @@ class VoxelOctree:
     def candidate_voxels(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Keys of voxels holding > min_points of the points (N,3) plus expanded neighbours, and the keys of
         every voxel holding any point."""
-        cells = occupied_cells(np.floor(points_world / self.voxel_size_m).astype(np.int64))  # (N,3)
-        keep = cells.counts > self.min_points
-        base = cells.coords[keep]  # (n,3)
+        stats = self._cell_stats(points_world)
+        if stats is None:  # NumPy: the reference
+            cells = occupied_cells(np.floor(points_world / self.voxel_size_m).astype(np.int64))  # (M,3)
+            coords, counts = cells.coords, cells.counts
+        else:
+            coords, counts, means = stats
+        keep = counts > self.min_points
+        base = coords[keep]  # (n,3)
         chosen = [encode(base)]
         if self.expansion and keep.any():
-            scaled = points_world / self.voxel_size_m  # (N,3) in voxels
-            sums = np.stack(
-                [np.bincount(cells.inverse, scaled[:, a], minlength=cells.counts.size) for a in range(3)], 1
-            )
-            local = sums[keep] / cells.counts[keep, None] - base  # (n,3) mean point in [0,1)^3
+            if stats is None:
+                scaled = points_world / self.voxel_size_m  # (N,3) in voxels
+                sums = np.stack(
+                    [np.bincount(cells.inverse, scaled[:, a], minlength=counts.size) for a in range(3)], 1
+                )
+                local = sums[keep] / counts[keep, None] - base  # (n,3) mean point in [0,1)^3
+            else:
+                local = means[keep]
             for axis in range(3):
                 for side, hit in ((-1, local[:, axis] < 0.1), (1, local[:, axis] > 0.9)):
                     nb = base[hit].copy()
                     nb[:, axis] += side
                     chosen.append(encode(nb))
-        return np.unique(np.concatenate(chosen)), encode(cells.coords)
+        return np.unique(np.concatenate(chosen)), encode(coords)
+
+    def _cell_stats(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The numba kernel's distinct cells, counts and mean points (h2viz.mapping.octree_numba), or None where it
+        does not apply (numba missing, no points, a box too large for a dense grid)."""
+        fused = kernel_module("octree_numba")
+        if fused is None or len(points_world) == 0:
+            return None
+        points = np.ascontiguousarray(points_world, dtype=np.float32)
+        coords, counts, means = fused.cell_stats(points, self.voxel_size_m, 1 << 22)
+        return None if counts.size == 0 else (coords, counts, means)
 
     def allocate(self, points_world: np.ndarray) -> Allocation:
         """Allocate voxels for one frame's back-projected points (N,3); corners are created with them."""
