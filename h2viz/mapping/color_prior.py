@@ -44,10 +44,9 @@ class ColorPrior:
         kernels = kernel_module("color_prior_numba") if self.fused and points.device.type == "cpu" else None
         if kernels is None:
             return None
-        from h2viz.mapping.raymarch import walk_table  # the octree's cached voxel hash table
+        from h2viz.mapping.raymarch import voxel_hash  # the octree's cached voxel hash table
 
-        table = walk_table(octree)
-        return kernels, (table.keys, table.ids)
+        return kernels, voxel_hash(octree)
 
     def add(self, octree: VoxelOctree, voxel_origin: torch.Tensor, points: torch.Tensor, rgb: torch.Tensor) -> None:
         """Splat colours rgb (N,3) in [0,1] measured at world points (N,3); points outside the map are skipped."""
