@@ -129,10 +129,10 @@ class Mapper:
 
     def live_step(self) -> float:
         """One optimisation step on the newest frame `add_frame` integrated plus the K keyframes coverage selects
-        for it (selected at its first step); its voxels are marked for re-meshing. Returns the loss (NaN when no
-        frame was integrated yet, or the batch found no samples)."""
+        for it (selected at its first step); its voxels are marked for re-meshing. Without a frame from `add_frame`
+        (a map built in every-frame mode, or restored), a `refine_step`. Returns the loss (NaN without keyframes)."""
         if self._live is None:
-            return float("nan")
+            return self.refine_step()
         index, rays, observed, frames = self._live
         if frames is None:
             selected = self.keyframes.select(observed, index)
