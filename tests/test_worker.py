@@ -670,3 +670,25 @@ def test_live_mesh_is_coarse_and_downloads_use_the_mapping_resolution(make_worke
     # twice the samples per voxel edge: about four times the triangles of the same surface
     assert 3.0 < len(full.faces) / live_faces < 5.0
     assert all(mapper.mesh_chunks()[k] is c for k, c in live.items())  # the live chunks are left as they were
+
+
+class StallingRoomSource(BoxRoomSource):
+    """Room frames at 30 Hz with a 2.5 s gap in the stream after frame 9 (a camera that stops sending)."""
+
+    def timestamp(self, position: int, key: object) -> float:
+        i = int(key)  # type: ignore[call-overload]
+        return i / 30.0 + (2.5 if i >= 10 else 0.0)
+
+
+def test_a_paused_stream_sharpens_the_map_and_frames_after_it_are_integrated(make_worker: Factory) -> None:
+    source, mapper = StallingRoomSource(n=20), FakeMapper()
+    mapper.step_delay_s = 0.005
+    worker = make_worker(source, mapper, cfg=anytime_cfg(), realtime=True)
+    wait_for(worker, lambda s: s.frames_done == 10 and s.phase in ("sharpening", "settled"))
+    assert mapper.refine_steps > 0 and not worker.slot.get()[1].finished  # the gap: keyframes sharpened
+    assert worker.wait_finished(20)
+    snap = worker.slot.get()[1]
+    assert [s.index for s in snap.stats] == list(range(20)) and snap.dropped == 0
+    kinds = [k for k, _ in mapper.events]
+    first_after = kinds.index("add", kinds.index("refine"))
+    assert "live" in kinds[first_after:]  # back to live steps on the new frames

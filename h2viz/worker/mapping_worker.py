@@ -221,7 +221,7 @@ class MappingWorker(CommandServing):
             return
         if action is Action.STEP and self._phase != Phase.SETTLED.value:  # the stream paused: sharpen
             self._phase = Phase.SHARPENING.value
-            self._sharpen_step()
+            self._sharpen_slice()
             return
         item = self._feed.take(0.05 if action is not Action.INTEGRATE else 0.0)
         if item is END:
@@ -255,9 +255,10 @@ class MappingWorker(CommandServing):
         return self._finished and not self._paused and self._phase == Phase.SHARPENING.value
 
     def _sharpen_slice(self) -> None:
+        """A few sharpening steps (fewer when it settles or a frame arrives), then the mesh follows."""
         for _ in range(REFINE_SLICE):
             self._sharpen_step()
-            if not self._sharpening():
+            if self._phase != Phase.SHARPENING.value or self._feed.ready() or self._paused:
                 break
         if self.live and not self.meshing.busy:
             self._submit_mesh(REFRESH_S)
