@@ -79,7 +79,6 @@ class MappingWorker(CommandServing):
         self._opt_steps = self._newest_steps = 0  # real-time steps in all, and on the newest frame
         self._sharpen_s = 0.0
         self._last_frame_t = time.monotonic()
-        self._mesh_submitted_t = 0.0  # time.monotonic() of the last mesh job handed over
         self._commands: queue.Queue[Command] = queue.Queue()
         self._stop = threading.Event()
         self._paused = cfg.viewer.start_paused
@@ -344,15 +343,9 @@ class MappingWorker(CommandServing):
             self._feed.hold(self._paused and not self._steps)
 
     def _mesh_due(self) -> bool:
-        """After a frame: live updates (mesh_update_hz > 0) mesh every frame, else every mesh_every frames. In
-        real-time mode frames come every ~33 ms and a job after each kept the mesh thread busy most of the time,
-        on the cores integration needs: there a job at most twice per update the browsers get."""
+        """After a frame: live updates (mesh_update_hz > 0) mesh every frame, else every mesh_every frames."""
         s = self.settings
-        if self._mesh_dirty:
-            return True
-        if s.mesh_update_hz > 0 and s.realtime:
-            return time.monotonic() - self._mesh_submitted_t >= 0.5 / s.mesh_update_hz
-        return s.mesh_update_hz > 0 or (s.mesh_every > 0 and self._unmeshed >= s.mesh_every)
+        return s.mesh_update_hz > 0 or self._mesh_dirty or (s.mesh_every > 0 and self._unmeshed >= s.mesh_every)
 
     def _submit_mesh(self, refresh_s: float, whole: bool = False) -> None:
         """Freeze the field and hand the mesh thread a job (nothing when the mesh is up to date)."""
@@ -363,7 +356,6 @@ class MappingWorker(CommandServing):
             self._errors.append(f"mesh extraction failed: {type(e).__name__}: {e}")
             return
         self._unmeshed, self._mesh_dirty = 0, False
-        self._mesh_submitted_t = time.monotonic()
         if job is not None:
             self.meshing.submit(job)
 
