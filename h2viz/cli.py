@@ -190,8 +190,8 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--realtime",
         action="store_true",
-        help="play the source at its own frame rate and map the newest frame whenever the mapper is free "
-        "(source.realtime)",
+        help="play the source at its own frame rate: integrate every frame as it arrives, optimise between frames "
+        "and, after the stream, until the loss stops improving (source.realtime, anytime.*)",
     )
     p.add_argument(
         "--record",

@@ -114,9 +114,10 @@ class SourceConfig:
     downscale: int = 1
     """Integer factor to shrink colour, depth and intrinsics by (1 = full resolution)."""
     realtime: bool = False
-    """Real-time mode: play the frames at their timestamps' own rate (a bag at its recorded rate) and map the newest
-    frame whenever the mapper is free, counting the ones dropped; `h2viz map --realtime` sets it, and the
-    dashboard's Real-time toggle starts from it. Off: every frame is mapped, as fast as mapping goes."""
+    """Real-time mode: play the frames at their timestamps' own rate (a bag at its recorded rate), integrate every
+    frame as it arrives and optimise in the time between frames (anytime.*), counting the frames integration cannot
+    keep up with; `h2viz map --realtime` sets it, and the dashboard's Real-time toggle starts from it. Off: every
+    frame is mapped with mapping.max_iters steps, as fast as mapping goes."""
     intrinsics: IntrinsicsConfig = field(default_factory=IntrinsicsConfig)
     """Camera intrinsics where the data has none (Replica) or to override them."""
     depth_scale: float = 0.0
@@ -342,6 +343,34 @@ class AutosaveConfig:
 
 
 @dataclass
+class AnytimeConfig:
+    """Real-time mode (dashboard toggle, `h2viz map --realtime`, source.realtime): every frame that arrives
+    is integrated (voxels, SDF and colour priors, keyframe decision) and optimisation runs in the time between
+    frames, then goes on after the stream ends until the loss stops improving (h2viz.mapping.anytime)."""
+
+    opt_share: float = 0.25
+    """Least share of the mapping thread's time that optimisation keeps while frames wait to be integrated (the
+    rest goes to integration; with no frame waiting, optimisation has all of it)."""
+    backlog_frames: int = 30
+    """Frames that may wait to be integrated; a frame arriving when this many wait is dropped and counted (the
+    stream outruns integration itself)."""
+    plateau_window: int = 50
+    """After the stream: optimisation steps per window whose mean loss is compared with the best so far..."""
+    plateau_patience: int = 3
+    """...and windows in a row without improvement after which optimisation stops (the map has settled)..."""
+    plateau_tol: float = 0.005
+    """...where improving means a window mean below the best so far by this fraction."""
+    sharpen_max_s: float = 600.0
+    """Longest optimisation after the stream ends, seconds (0 = none: stop at the stream's end)."""
+    color_points: int = 40_000
+    """Pixels of each frame splatted into the colour prior (every k-th valid one; every-frame mode takes 160k):
+    at 30 Hz consecutive frames see the same surfaces, so a quarter of each still fills the lattices, for ~10 ms
+    a frame less."""
+    observed_points: int = 30_000
+    """Depth points of each frame that mark observed cells for meshing (every-frame mode takes 60k)."""
+
+
+@dataclass
 class Config:
     source: SourceConfig = field(default_factory=SourceConfig)
     """Where frames come from."""
@@ -353,6 +382,8 @@ class Config:
     """The live dashboard."""
     autosave: AutosaveConfig = field(default_factory=AutosaveConfig)
     """Periodic checkpoints of a run, to resume after a crash."""
+    anytime: AnytimeConfig = field(default_factory=AnytimeConfig)
+    """Real-time mode's scheduling of integration and optimisation."""
     out_dir: str = ""
     """Output folder of a run (empty = outputs/<source>-<time>)."""
 

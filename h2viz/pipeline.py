@@ -7,7 +7,6 @@ import dataclasses
 import json
 import logging
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,8 @@ from h2viz.mapping.checkpoint import load_checkpoint, save_checkpoint
 from h2viz.mapping.mapper import Mapper
 from h2viz.sources.base import FrameSource, make_source
 from h2viz.types import FrameStats, RgbdFrame
-from h2viz.worker.feed import END, FrameFeed, WorkerSettings
+from h2viz.worker.anytime_run import AnytimeRun, AnytimeTotals
+from h2viz.worker.feed import FrameFeed, WorkerSettings, realtime_from_config
 from h2viz.worker.run_recording import RunRecorder
 
 log = logging.getLogger("h2viz.map")
@@ -39,14 +39,20 @@ class RunResult:
     stats: list[FrameStats]
     metrics: dict[str, Any] = field(default_factory=dict)
     skipped: int = 0
-    dropped: int = 0  # real-time mode: frames that arrived while the mapper was busy
+    dropped: int = 0  # real-time mode: frames integration could not keep up with
     refine_s: float = 0.0  # seconds of mapping.refine_iters steps after the last frame
     record_s: float = 0.0  # seconds the recording cost the run (meshing every frame, handing over steps)
     errors: list[str] = field(default_factory=list)  # failures met on the way (the run kept what was mapped)
     resumed_from: Path | None = None
+    anytime: AnytimeTotals | None = None  # real-time mode: frames integrated / dropped, steps, sharpening
 
     def summary(self) -> str:
         line = f"mapped {len(self.stats)} frames ({self.skipped} skipped, {self.dropped} dropped)"
+        if self.anytime is not None:
+            a = self.anytime
+            line = f"integrated {a.integrated} of {a.arrived} frames ({self.skipped} skipped, {a.dropped} dropped: "
+            line += f"{a.passed_over} read too late, {a.overflowed} beyond the backlog)"
+            line += f"; {a.stream_steps} steps during the stream, {a.sharpen_steps} after it ({a.sharpen_s:.1f} s)"
         if self.stats:
             times = np.array([s.map_time_s for s in self.stats])
             line += f"; per-frame time median {np.median(times):.3f} s, p90 {np.percentile(times, 90):.3f} s"
@@ -117,30 +123,6 @@ def evaluate(
     return metrics
 
 
-class RealtimeStream:
-    """The source played at its timestamps' own rate; when the mapper is busy, only the newest frame waits and
-    older unmapped ones are dropped (counted in `dropped`)."""
-
-    def __init__(self, source: FrameSource, cfg: Config) -> None:
-        settings = WorkerSettings(realtime=True, stride=max(1, cfg.source.stride))
-        self._feed = FrameFeed(source, settings, cfg.source.max_frames)
-
-    @property
-    def dropped(self) -> int:
-        return self._feed.dropped
-
-    def __iter__(self) -> Iterator[tuple[int, RgbdFrame]]:
-        self._feed.start()
-        try:
-            position = 0
-            while (item := self._feed.take(timeout_s=1.0)) is not END:
-                if item is not None:
-                    yield position, item
-                    position += 1
-        finally:
-            self._feed.stop()
-
-
 def run_map(
     cfg: Config,
     resume: Path | None = None,
@@ -149,8 +131,9 @@ def run_map(
     realtime: bool = False,
     record: bool = False,
 ) -> RunResult:
-    """Map every frame of the configured source (or, in real-time mode, the newest frame whenever the mapper is
-    free) and write the run's outputs; with `record`, also a timeline recording of the run in out/recording.
+    """Map every frame of the configured source (or, in real-time mode, as it arrives at the source's own rate:
+    see `_map_anytime`) and write the run's outputs; with `record` (every-frame mode), also a timeline recording
+    of the run in out/recording.
     `resume` (a checkpoint, or a run folder: its newest one; the run folder is
     then also the output folder unless cfg.out_dir says otherwise) continues an earlier run and its stats. The
     mapping state is autosaved to the run folder every cfg.autosave frames / seconds; a source that fails mid-stream,
@@ -165,15 +148,23 @@ def run_map(
     out.mkdir(parents=True, exist_ok=True)
     dump_config(cfg, out / "config.yaml")
     mapper, last_index, stats = _open_mapper(cfg, resume)
+    realtime = realtime or realtime_from_config(cfg)
     gt = _ground_truth(source, gt_mesh)
     eval_frames = EvalFrames(len(source), cfg.eval.n_interpolate)
-    stream = RealtimeStream(source, cfg) if realtime else None
-    recorder = _recorder(mapper, cfg, out, len(source)) if record else None
+    if record and realtime:
+        log.warning("--record records every-frame runs; this real-time run is not recorded")
+    recorder = _recorder(mapper, cfg, out, len(source)) if record and not realtime else None
     autosave = Autosaver(out, cfg.autosave, mapper.frames_done)
     errors: list[str] = []
-    last_index = _map_stream(
-        mapper, source, stream, eval_frames, stats, last_index, autosave, errors, progress, recorder
-    )
+    anytime = None
+    if realtime:
+        bar = tqdm(total=len(source), disable=not progress, unit="frame", dynamic_ncols=True)
+        new_stats, anytime = _map_anytime(source, mapper, cfg, eval_frames, last_index, bar)
+        bar.close()
+        stats.extend(new_stats)
+        last_index = stats[-1].index if stats else last_index
+    else:
+        last_index = _map_stream(mapper, source, eval_frames, stats, last_index, autosave, errors, progress, recorder)
     refine_s = _refine(mapper, cfg.mapping.refine_iters, progress)
     if recorder is not None:
         recorder.finish()
@@ -184,10 +175,11 @@ def run_map(
     metrics = evaluate(mapper, mesh, gt, eval_frames, cfg) if gt is not None else {}
     if metrics:
         write_metrics(metrics, out / "metrics.json")
-    dropped = stream.dropped if stream is not None else 0
-    _write_stats(out / "stats.json", stats, source, dropped, refine_s, errors)
+    totals = anytime.totals if anytime is not None else None
+    dropped = totals.dropped if totals is not None else 0
+    _write_stats(out / "stats.json", stats, source, totals, refine_s, errors)
     record_s = recorder.seconds if recorder is not None else 0.0
-    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s, record_s, errors, resume)
+    return RunResult(out, stats, metrics, len(source.skipped), dropped, refine_s, record_s, errors, resume, totals)
 
 
 def _recorder(mapper: Mapper, cfg: Config, out: Path, total: int) -> RunRecorder:
@@ -199,7 +191,6 @@ def _recorder(mapper: Mapper, cfg: Config, out: Path, total: int) -> RunRecorder
 def _map_stream(
     mapper: Mapper,
     source: FrameSource,
-    stream: RealtimeStream | None,
     eval_frames: EvalFrames,
     stats: list[FrameStats],
     last_index: int,
@@ -212,7 +203,7 @@ def _map_stream(
     The stream ends early, keeping what was mapped, when the source fails, the mapper fails on
     MAX_CONSECUTIVE_FAILURES frames in a row, or on Ctrl-C."""
     bar = tqdm(total=len(source), disable=not progress, unit="frame", dynamic_ncols=True)
-    frames = iter(stream if stream is not None else enumerate(source))
+    frames = iter(enumerate(source))
     failures = 0
     while True:
         try:
@@ -229,7 +220,7 @@ def _map_stream(
                 "kept and saved; fix the data and resume this run folder to go on"
             )
             break
-        bar.update(position + 1 + (stream.dropped if stream is not None else 0) - bar.n)  # frames read so far
+        bar.update(position + 1 - bar.n)  # frames read so far
         eval_frames.add(position, frame)
         if frame.index <= last_index:
             continue
@@ -256,8 +247,6 @@ def _map_stream(
         if failed is not None and failed not in errors:
             errors.append(failed)
     bar.close()
-    if stream is not None:
-        frames.close()  # type: ignore[attr-defined]
     return last_index
 
 
@@ -271,6 +260,31 @@ def _save_outputs(mapper: Mapper, out: Path, last_index: int, stats: list[FrameS
         save_checkpoint(mapper, out / "checkpoint.pt", run_state(last_index, stats))
     except CheckpointError as e:
         errors.append(f"{e}; the last autosave in {out} is kept")
+def _map_anytime(
+    source: FrameSource, mapper: Mapper, cfg: Config, eval_frames: EvalFrames, last_index: int, bar: tqdm
+) -> tuple[list[FrameStats], AnytimeRun]:
+    """The source played at its own rate: every frame integrated as it arrives, optimisation between frames, then
+    until the loss plateaus (anytime.*)."""
+    settings = WorkerSettings(realtime=True, stride=max(1, cfg.source.stride))
+    feed = FrameFeed(source, settings, cfg.source.max_frames, cfg.anytime.backlog_frames)
+    run = AnytimeRun(mapper, feed, cfg.anytime)
+    position = 0
+
+    def arrived(frame: RgbdFrame) -> bool:
+        nonlocal position
+        eval_frames.add(position, frame)
+        position += 1
+        bar.update(position + feed.dropped - bar.n)
+        bar.set_postfix(steps=run.totals.stream_steps, dropped=feed.dropped, vox=mapper.octree.n_voxels)
+        return frame.index > last_index
+
+    feed.start()
+    try:
+        run.stream(arrived)
+    finally:
+        feed.stop()
+    run.sharpen()
+    return run.stats, run
 
 
 def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:
@@ -284,7 +298,12 @@ def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:
 
 
 def _write_stats(
-    path: Path, stats: list[FrameStats], source: FrameSource, dropped: int, refine_s: float, errors: list[str]
+    path: Path,
+    stats: list[FrameStats],
+    source: FrameSource,
+    anytime: AnytimeTotals | None,
+    refine_s: float,
+    errors: list[str],
 ) -> None:
     times = [s.map_time_s for s in stats]
     doc = {
@@ -294,9 +313,10 @@ def _write_stats(
             "median_map_time_s": float(np.median(times)) if times else None,
             "p90_map_time_s": float(np.percentile(times, 90)) if times else None,
             "mean_iterations": float(np.mean([s.iterations for s in stats])) if stats else None,
-            "dropped_frames": dropped,
+            "dropped_frames": anytime.dropped if anytime is not None else 0,
             "refine_s": refine_s,
         },
+        "realtime": None if anytime is None else {**dataclasses.asdict(anytime), "arrived": anytime.arrived},
         "skipped": [dataclasses.asdict(s) for s in source.skipped],
         "errors": errors,
     }

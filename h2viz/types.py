@@ -134,6 +134,8 @@ class MapSnapshot:
     memory_mb: float = 0.0
     refine_left: int = 0  # refinement steps still to run (they run while mapping is paused or finished)
     refined: int = 0  # refinement steps run so far
+    phase: str = ""  # real-time mode: streaming | sharpening | settled (h2viz.mapping.anytime.Phase); "" otherwise
+    opt_steps: int = 0  # real-time mode: optimisation steps so far (between frames and after the stream)
 
 
 class RenderMode(str, Enum):

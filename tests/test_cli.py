@@ -83,13 +83,22 @@ def test_run_summary_without_frames_gives_no_times_and_names_the_refinement(tmp_
     assert "refined the map for 12.3 s" in text
 
 
-def test_realtime_maps_the_newest_frame_and_counts_the_dropped(tmp_path: Path) -> None:
+def test_realtime_integrates_every_frame_and_reports_the_counts(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "realtime"
-    assert main(["map", "--realtime", "--frames", "30", "--out", str(out), "-q", *TINY]) == 0
+    settle = ["--set", "anytime.plateau_window=5", "--set", "anytime.sharpen_max_s=20"]
+    assert main(["map", "--realtime", "--frames", "30", "--out", str(out), "-q", *TINY, *settle]) == 0
     stats = json.loads((out / "stats.json").read_text())
     mapped = [f["index"] for f in stats["frames"]]
+    realtime = stats["realtime"]
     assert mapped == sorted(set(mapped)) and mapped[-1] == 29  # in order, and the newest frame is never lost
-    assert len(mapped) + stats["summary"]["dropped_frames"] == 30
+    assert realtime["integrated"] == len(mapped) and realtime["arrived"] == 30
+    assert len(mapped) + realtime["dropped"] == 30 and stats["summary"]["dropped_frames"] == realtime["dropped"]
+    assert realtime["overflowed"] == 0  # 96x72 frames integrate in a few ms: integration never fell behind...
+    assert realtime["passed_over"] == realtime["dropped"] < 15  # ...but rendering the scene may (counted)
+    assert realtime["stream_steps"] > 0 and realtime["sharpen_steps"] > 0 and realtime["phase"] == "settled"
+    assert sum(f["iterations"] for f in stats["frames"]) == realtime["stream_steps"]
+    text = capsys.readouterr().out
+    assert f"integrated {len(mapped)} of 30 frames" in text and "after it" in text
 
 
 def test_eval_prints_a_table_and_writes_metrics(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

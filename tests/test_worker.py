@@ -95,14 +95,72 @@ def test_stride_and_skipped_frames(make_worker: Factory) -> None:
     assert [s.index for s in snap.stats] == [0, 2, 6, 8] and snap.skipped == 1 and snap.frames_total == 5
 
 
-def test_realtime_mode_takes_the_newest_frame_and_counts_drops(make_worker: Factory) -> None:
-    source = BoxRoomSource(n=40)  # 30 Hz timestamps
-    worker = make_worker(source, FakeMapper(delay_s=0.12), realtime=True)
+def anytime_cfg(**anytime: object) -> Config:
+    cfg = Config()
+    cfg.anytime = replace(cfg.anytime, **{"plateau_window": 10, **anytime})  # type: ignore[arg-type]
+    return cfg
+
+
+class RoomAt15Hz(BoxRoomSource):
+    """Room frames 1/15 s apart: on a busy two-core machine a 30 Hz reader thread now and then passes over a frame
+    it was late to read (counted, as the next test's are); here every frame must arrive."""
+
+    def timestamp(self, position: int, key: object) -> float:
+        return int(key) / 15.0  # type: ignore[call-overload]
+
+
+def test_realtime_mode_integrates_every_frame_steps_between_them_and_sharpens_after(make_worker: Factory) -> None:
+    source, mapper = RoomAt15Hz(n=40), FakeMapper()
+    mapper.add_delay_s, mapper.step_delay_s = 0.005, 0.004
+    worker = make_worker(source, mapper, cfg=anytime_cfg(), realtime=True)
     assert worker.wait_finished(20)
+    snap = wait_for(worker, lambda s: s.phase == "settled")  # the fake loss is flat from its 100th step
+    assert [s.index for s in snap.stats] == list(range(40)) and snap.dropped == 0  # every frame integrated
+    adds = [i for i, (kind, _) in enumerate(mapper.events) if kind == "add"]
+    assert len(adds) == 40 and mapper.live_steps > 40
+    between = [sum(k == "live" for k, _ in mapper.events[a:b]) for a, b in zip(adds, adds[1:], strict=False)]
+    assert sum(n >= 1 for n in between) >= 30  # the time between frames went to optimisation, except while
+    assert all(sum(between[i : i + 10]) >= 1 for i in range(len(between)))  # catching up after a metrics refresh
+    assert all(f == adds_frame for (k, f), adds_frame in _live_frames(mapper.events) if k == "live")
+    assert 100 <= mapper.refine_steps <= 200  # sharpened after the stream until the loss was flat
+    assert snap.opt_steps == mapper.live_steps + mapper.refine_steps
+    assert sum(s.iterations for s in snap.stats) == mapper.live_steps  # steps counted on the frame they served
+    time.sleep(0.3)
+    assert mapper.refine_steps == snap.opt_steps - mapper.live_steps  # settled: nothing more runs
+
+
+def _live_frames(events: list[tuple[str, int]]) -> Iterator[tuple[tuple[str, int], int]]:
+    """Each event with the newest frame integrated before it."""
+    newest = -1
+    for kind, frame in events:
+        if kind == "add":
+            newest = frame
+        yield (kind, frame), newest
+
+
+def test_realtime_mode_counts_frames_integration_cannot_keep_up_with(make_worker: Factory) -> None:
+    source, mapper = BoxRoomSource(n=40), FakeMapper()
+    mapper.add_delay_s = 0.1  # three frame periods per frame
+    worker = make_worker(source, mapper, cfg=anytime_cfg(backlog_frames=4), realtime=True)
+    assert worker.wait_finished(30)
     snap = worker.slot.get()[1]
     mapped = [s.index for s in snap.stats]
-    assert snap.dropped > 10 and snap.frames_done + snap.dropped == 40
+    assert snap.dropped > 10 and snap.frames_done + snap.dropped == 40  # every frame integrated or counted
     assert mapped == sorted(mapped) and mapped[-1] == 39
+
+
+def test_pausing_stops_the_sharpening_and_resuming_continues_it(make_worker: Factory) -> None:
+    source, mapper = BoxRoomSource(n=10), FakeMapper()
+    mapper.step_delay_s = 0.01
+    worker = make_worker(source, mapper, cfg=anytime_cfg(plateau_window=1000), realtime=True)
+    assert worker.wait_finished(20)
+    wait_for(worker, lambda s: s.phase == "sharpening" and mapper.refine_steps > 5)
+    worker.submit("pause").result(5)
+    stopped = mapper.refine_steps
+    time.sleep(0.3)
+    assert mapper.refine_steps == stopped and worker.slot.get()[1].paused
+    worker.submit("resume").result(5)
+    wait_for(worker, lambda s: mapper.refine_steps > stopped + 5)
 
 
 class SlowRoomSource(BoxRoomSource):
@@ -119,14 +177,23 @@ class SlowRoomSource(BoxRoomSource):
 
 
 def test_realtime_mode_passes_over_overdue_frames_without_reading_them(make_worker: Factory) -> None:
-    source = SlowRoomSource(n=60)  # 2 s of stream; reading every frame would take 6 s
-    worker = make_worker(source, FakeMapper(), realtime=True)
-    assert worker.wait_finished(30)
+    source = SlowRoomSource(n=120)  # 4 s of stream; reading every frame would take 12 s
+    worker = make_worker(source, FakeMapper(), cfg=anytime_cfg(backlog_frames=4), realtime=True)
+    assert worker.wait_finished(40)
     snap = worker.slot.get()[1]
-    assert snap.frames_done + snap.dropped == 60
-    assert len(source.loaded) < 40  # only frames due when the reader got to them (about one in three)
-    assert source.loaded == sorted(source.loaded) and source.loaded[-1] == 59
-    assert snap.stats[-1].index == 59
+    assert snap.frames_done + snap.dropped == 120
+    # frames a whole backlog behind the stream's clock are passed over unread (about two in three here)...
+    assert len(source.loaded) < 60 and worker._feed.passed_over > 50
+    assert source.loaded == sorted(source.loaded) and source.loaded[-1] == 119
+    assert snap.stats[-1].index == 119
+
+
+def test_a_late_reader_still_delivers_every_frame_within_the_backlog(make_worker: Factory) -> None:
+    source = SlowRoomSource(n=20)  # ...while a reader less than a backlog behind reads them all
+    worker = make_worker(source, FakeMapper(), cfg=anytime_cfg(backlog_frames=30), realtime=True)
+    assert worker.wait_finished(40)
+    snap = worker.slot.get()[1]
+    assert snap.dropped == 0 and [s.index for s in snap.stats] == list(range(20))
 
 
 def test_pause_step_resume(make_worker: Factory) -> None:
@@ -603,3 +670,25 @@ def test_live_mesh_is_coarse_and_downloads_use_the_mapping_resolution(make_worke
     # twice the samples per voxel edge: about four times the triangles of the same surface
     assert 3.0 < len(full.faces) / live_faces < 5.0
     assert all(mapper.mesh_chunks()[k] is c for k, c in live.items())  # the live chunks are left as they were
+
+
+class StallingRoomSource(BoxRoomSource):
+    """Room frames at 30 Hz with a 2.5 s gap in the stream after frame 9 (a camera that stops sending)."""
+
+    def timestamp(self, position: int, key: object) -> float:
+        i = int(key)  # type: ignore[call-overload]
+        return i / 30.0 + (2.5 if i >= 10 else 0.0)
+
+
+def test_a_paused_stream_sharpens_the_map_and_frames_after_it_are_integrated(make_worker: Factory) -> None:
+    source, mapper = StallingRoomSource(n=20), FakeMapper()
+    mapper.step_delay_s = 0.005
+    worker = make_worker(source, mapper, cfg=anytime_cfg(), realtime=True)
+    wait_for(worker, lambda s: s.frames_done == 10 and s.phase in ("sharpening", "settled"))
+    assert mapper.refine_steps > 0 and not worker.slot.get()[1].finished  # the gap: keyframes sharpened
+    assert worker.wait_finished(20)
+    snap = worker.slot.get()[1]
+    assert [s.index for s in snap.stats] == list(range(20)) and snap.dropped == 0
+    kinds = [k for k, _ in mapper.events]
+    first_after = kinds.index("add", kinds.index("refine"))
+    assert "live" in kinds[first_after:]  # back to live steps on the new frames

@@ -52,6 +52,7 @@ class ArrayKernels:
     prior: ModuleType  # h2viz.mapping.prior_numba: the frozen field's prior blend
     decoder: ModuleType  # h2viz.mapping.decoder_numba: the frozen field's decoder on CPU features
     fine_prior: ModuleType  # h2viz.mapping.fine_prior_numba: depth fusion into fine SDF priors, their blends
+    octree: ModuleType  # h2viz.mapping.octree_numba: a frame's occupied cells, counts and mean points
 
 
 @dataclass(frozen=True)
@@ -89,6 +90,7 @@ def _compiled() -> tuple[TensorKernels, ArrayKernels] | None:
             hash_numba,
             loss_numba,
             marching_numba,
+            octree_numba,
             optim_numba,
             prior_numba,
             raymarch,
@@ -102,7 +104,7 @@ def _compiled() -> tuple[TensorKernels, ArrayKernels] | None:
         fine_prior_numba,
     )  # fmt: skip
     arrays = ArrayKernels(
-        raymarch, surface, marching_numba, support_numba, prior_numba, decoder_numba, fine_prior_numba
+        raymarch, surface, marching_numba, support_numba, prior_numba, decoder_numba, fine_prior_numba, octree_numba
     )
     return tensors, arrays
 

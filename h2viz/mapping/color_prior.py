@@ -51,8 +51,7 @@ class ColorPrior:
         k = None if self.backend is None else self.backend.cpu_kernels(points, self.sums)
         if k is None or self.backend is None or self.backend.array_kernels is None:
             return None
-        table = self.backend.array_kernels.walk.walk_table(octree)  # the octree's cached voxel hash table
-        return k.color_prior, (table.keys, table.ids)
+        return k.color_prior, self.backend.array_kernels.walk.voxel_hash(octree)  # the octree's cached hash table
 
     def add(self, octree: VoxelOctree, voxel_origin: torch.Tensor, points: torch.Tensor, rgb: torch.Tensor) -> None:
         """Splat colours rgb (N,3) in [0,1] measured at world points (N,3); points outside the map are skipped."""

@@ -15,11 +15,15 @@ Values are in truncation units, like the corner priors; the residual learns what
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 
 from h2viz.geometry import invert_se3
-from h2viz.mapping.backend import Backend
+
+if TYPE_CHECKING:
+    from h2viz.mapping.backend import Backend
 
 SUB = 8
 """Lattice cells per voxel edge (SUB + 1 points per edge, 1.25 cm apart at 10 cm voxels)."""

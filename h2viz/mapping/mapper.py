@@ -20,7 +20,7 @@ from h2viz.mapping.keyframes import KeyframeSet
 from h2viz.mapping.losses import check_color_settings, color_error, mapping_losses
 from h2viz.mapping.mesh_job import FrozenField, MeshJob
 from h2viz.mapping.meshing import ChunkedMesher, export_mesh, merge_chunks
-from h2viz.mapping.octree import VoxelOctree
+from h2viz.mapping.octree import Allocation, VoxelOctree
 from h2viz.mapping.optim import GrowingAdam
 from h2viz.mapping.priors import PriorInitializer
 from h2viz.mapping.raycast import RenderParams, locate, render_image
@@ -56,7 +56,9 @@ class Mapper:
         torch.manual_seed(cfg.seed)
         self.rng = torch.Generator().manual_seed(cfg.seed)
         self.voxel_size_m = cfg.voxel_size_m
-        self.octree = VoxelOctree(cfg.voxel_size_m, cfg.min_points_per_voxel, cfg.expansion)
+        arrays = self.backend.array_kernels
+        cells = None if arrays is None else arrays.octree.cell_stats
+        self.octree = VoxelOctree(cfg.voxel_size_m, cfg.min_points_per_voxel, cfg.expansion, cells)
         self.priors = PriorInitializer(cfg.truncation_m, cfg.priors)
         self.observed = ObservedCells(cfg.voxel_size_m, self.backend)  # where depth was measured, for meshing
         self.field = HybridField(cfg, self.backend).to(self.device)
@@ -74,6 +76,10 @@ class Mapper:
         self.frames_done = 0
         self.version = 0
         self.max_depth_m = 0.0
+        self._live: tuple[int, FrameRays, np.ndarray, list[FrameRays] | None] | None = None
+        """The newest frame `add_frame` integrated: index, rays, observed voxels and, once selected, the frames its
+        live steps sample (it and its keyframes)."""
+        self._live_timer = StageTimer()  # stage seconds of live and refinement steps
         self.on_iteration: Callable[[], None] | None = None
         """Called on the mapping thread after every optimisation step, where the field is consistent: the
         dashboard hands a waiting mesh update over there instead of at the end of the frame."""
@@ -93,28 +99,102 @@ class Mapper:
 
     # ----------------------------------------------------------------------------------- pipeline
     def integrate(self, frame: RgbdFrame) -> FrameStats:
-        """Map one frame; the steps follow the paper."""
+        """Map one frame (every-frame mode, the paper's protocol): integrate it, then up to max_iters steps on it
+        and its coverage-selected keyframes."""
         start = time.perf_counter()
         timer = StageTimer()
+        rays, alloc = self._integrate_frame(frame, timer)
+        with timer("keyframes"):
+            selected = self.keyframes.select(alloc.observed, frame.index)  # coverage-maximising K keyframes
+        frames = [rays, *(self.keyframe_rays[i] for i in selected)]
+        iters, losses = self._optimise(frames, timer)  # at most max_iters, early ending
+        self._finish_frame(frame, alloc)
+        return self._frame_stats(frame, start, iters, losses, timer)
+
+    def add_frame(
+        self, frame: RgbdFrame, color_points: int = COLOR_POINTS, observed_points: int = OBSERVED_POINTS
+    ) -> FrameStats:
+        """Integrate one frame without optimising (real-time mode): rays, voxel allocation, SDF priors, colour
+        prior (from up to `color_points` of its pixels), observed cells (up to `observed_points`) and the keyframe
+        decision. Its geometry is in the map when this returns; `live_step` optimises it afterwards, as often as
+        time allows."""
+        start = time.perf_counter()
+        timer = StageTimer()
+        rays, alloc = self._integrate_frame(frame, timer, color_points, observed_points)
+        self._live = (frame.index, rays, alloc.observed, None)  # keyframes selected at its first step
+        self._finish_frame(frame, alloc)
+        return self._frame_stats(frame, start, 0, {}, timer)
+
+    def live_step(self) -> float:
+        """One optimisation step on the newest frame `add_frame` integrated plus the K keyframes coverage selects
+        for it (selected at its first step); its voxels are marked for re-meshing. Without a frame from `add_frame`
+        (a map built in every-frame mode, or restored), a `refine_step`. Returns the loss (NaN without keyframes)."""
+        if self._live is None:
+            return self.refine_step()
+        index, rays, observed, frames = self._live
+        if frames is None:
+            selected = self.keyframes.select(observed, index)
+            frames = [rays, *(self.keyframe_rays[i] for i in selected)]
+            self._live = (index, rays, observed, frames)
+        loss = float(self._step(frames, self._live_timer)["total"])
+        self.touched[observed] = True
+        return loss
+
+    def refine_step(self) -> float:
+        """One step on rays from K + 1 keyframes drawn at random (what `refine` runs, and real-time mode after the
+        stream); marks every voxel for re-meshing. Returns the loss (NaN without keyframes)."""
+        n_keyframes = len(self.keyframe_rays)
+        n_frames = min(self.cfg.n_keyframes + 1, n_keyframes)
+        if n_frames == 0:
+            return float("nan")
+        picked = torch.randperm(n_keyframes, generator=self.rng)[:n_frames]  # the ray sampler's generator
+        loss = float(self._step([self.keyframe_rays[i] for i in picked.tolist()], self._live_timer)["total"])
+        self.touched[:] = True
+        return loss
+
+    def refine(self, iterations: int, on_step: Callable[[], None] | None = None) -> int:
+        """Optimise the finished map `iterations` more steps, each on rays from K + 1 keyframes drawn at random
+        (no early ending; `on_step` after each), and mark every voxel for re-meshing. Returns the steps taken (0
+        without keyframes)."""
+        done = 0
+        while done < iterations and self.keyframe_rays:
+            self.refine_step()
+            done += 1
+            if on_step is not None:
+                on_step()
+        return done
+
+    def _integrate_frame(
+        self,
+        frame: RgbdFrame,
+        timer: StageTimer,
+        color_points: int = COLOR_POINTS,
+        observed_points: int = OBSERVED_POINTS,
+    ) -> tuple[FrameRays, Allocation]:
+        """What a frame adds to the map before any optimisation; inserts it as a keyframe when the rule says so."""
         with timer("allocation"):
             rays, points = FrameRays.with_points(frame, self.backend)  # valid depth -> rays, world points (P,3)
             alloc = self.octree.allocate(points)  # voxels with > 10 points (+ expanded neighbours)
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
             self._init_priors(frame)  # project new corners into the depth image
-            self._add_colors(points, rays)  # the colour prior averages the frame's pixel colours
-            self.observed.add(self.octree, points[:: max(1, len(points) // OBSERVED_POINTS)])  # for meshing
+            self._add_colors(points, rays, color_points)  # the colour prior averages the frame's pixel colours
+            self.observed.add(self.octree, points[:: max(1, len(points) // max(1, observed_points))])  # meshing
         with timer("keyframes"):
             if self.keyframes.should_insert(frame.index, alloc.observed):  # IoU / max-gap rule
                 self._add_keyframe(frame, rays, alloc.observed)
-            selected = self.keyframes.select(alloc.observed, frame.index)  # coverage-maximising K keyframes
-        frames = [rays, *(self.keyframe_rays[i] for i in selected)]
-        iters, losses = self._optimise(frames, timer)  # at most max_iters, early ending
+        return rays, alloc
+
+    def _finish_frame(self, frame: RgbdFrame, alloc: Allocation) -> None:
         self.touched[np.concatenate([alloc.new_voxels, alloc.observed])] = True  # re-meshed by the next mesh job
         self.trajectory.append(frame.T_world_camera)
         self.frames_done += 1
         self.max_depth_m = max(self.max_depth_m, float(frame.depth_m.max(initial=0.0)))
         if self.cfg.mesh_every > 0 and self.frames_done % self.cfg.mesh_every == 0:
             self.update_mesh()
+
+    def _frame_stats(
+        self, frame: RgbdFrame, start: float, iters: int, losses: dict[str, float], timer: StageTimer
+    ) -> FrameStats:
         return FrameStats(
             index=frame.index,
             map_time_s=time.perf_counter() - start,
@@ -126,36 +206,19 @@ class Mapper:
             timings=timer.seconds,
         )
 
-    def refine(self, iterations: int, on_step: Callable[[], None] | None = None) -> int:
-        """Optimise the finished map `iterations` more steps, each on rays from K + 1 keyframes drawn at random
-        (no early ending; `on_step` after each), and mark every voxel for re-meshing. Returns the steps taken (0
-        without keyframes)."""
-        timer = StageTimer()
-        n_keyframes = len(self.keyframe_rays)
-        n_frames = min(self.cfg.n_keyframes + 1, n_keyframes)
-        done = 0
-        while done < iterations and n_frames > 0:
-            picked = torch.randperm(n_keyframes, generator=self.rng)[:n_frames]  # the ray sampler's generator
-            frames = [self.keyframe_rays[i] for i in picked.tolist()]
-            self._step(frames, timer)
-            done += 1
-            if on_step is not None:
-                on_step()
-        if done:
-            self.touched[:] = True
-        return done
-
     def _grow(self, new_voxels: np.ndarray) -> None:
         self.field.sync(self.octree)
         self.priors.grow(self.octree.n_corners, new_voxels)
         self.touched = np.concatenate([self.touched, np.zeros(self.octree.n_voxels - self.touched.size, bool)])
 
-    def _add_colors(self, points: np.ndarray, rays: FrameRays) -> None:
-        """Splat the colours of up to COLOR_POINTS of the frame's valid pixels (every k-th) into the colour prior."""
+    def _add_colors(self, points: np.ndarray, rays: FrameRays, color_points: int = COLOR_POINTS) -> None:
+        """Splat the colours of up to `color_points` of the frame's valid pixels (every k-th) into the colour
+        prior."""
         if self.field.color_prior is None:
             return
-        k = max(1, -(-len(points) // COLOR_POINTS))
-        rgb = rays.rgb[::k].to(self.device).float() / 255.0  # (P/k,3)
+        k = max(1, -(-len(points) // max(1, color_points)))
+        rgb_u8 = rays.rgb[::k].cpu().numpy()  # (P/k,3) uint8; NumPy converts it ~10x faster than torch here
+        rgb = torch.from_numpy(rgb_u8.astype(np.float32) / np.float32(255.0)).to(self.device)
         self.field.add_colors(torch.from_numpy(points[::k]).to(self.device), rgb)
 
     @torch.no_grad()

@@ -8,6 +8,7 @@ mapped and no scene bounds are ever set. Coarser octree levels are the leaf coor
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -123,8 +124,12 @@ class Allocation:
 class VoxelOctree:
     """Leaf voxels and their shared corners; corner i of voxel v is `voxel_corners[v, i]`."""
 
-    def __init__(self, voxel_size_m: float, min_points: int = 10, expansion: bool = True) -> None:
+    def __init__(
+        self, voxel_size_m: float, min_points: int = 10, expansion: bool = True, cell_stats: Any = None
+    ) -> None:
+        """`cell_stats`: the backend's compiled cell counter (h2viz.mapping.octree_numba), or None for NumPy's."""
         self.voxel_size_m = float(voxel_size_m)
+        self._cell_kernel = cell_stats
         self.min_points = int(min_points)
         self.expansion = bool(expansion)
         self.voxels = KeyIndex()
@@ -154,22 +159,39 @@ class VoxelOctree:
     def candidate_voxels(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Keys of voxels holding > min_points of the points (N,3) plus expanded neighbours, and the keys of
         every voxel holding any point."""
-        cells = occupied_cells(np.floor(points_world / self.voxel_size_m).astype(np.int64))  # (N,3)
-        keep = cells.counts > self.min_points
-        base = cells.coords[keep]  # (n,3)
+        stats = self._cell_stats(points_world)
+        if stats is None:  # NumPy: the reference
+            cells = occupied_cells(np.floor(points_world / self.voxel_size_m).astype(np.int64))  # (M,3)
+            coords, counts = cells.coords, cells.counts
+        else:
+            coords, counts, means = stats
+        keep = counts > self.min_points
+        base = coords[keep]  # (n,3)
         chosen = [encode(base)]
         if self.expansion and keep.any():
-            scaled = points_world / self.voxel_size_m  # (N,3) in voxels
-            sums = np.stack(
-                [np.bincount(cells.inverse, scaled[:, a], minlength=cells.counts.size) for a in range(3)], 1
-            )
-            local = sums[keep] / cells.counts[keep, None] - base  # (n,3) mean point in [0,1)^3
+            if stats is None:
+                scaled = points_world / self.voxel_size_m  # (N,3) in voxels
+                sums = np.stack(
+                    [np.bincount(cells.inverse, scaled[:, a], minlength=counts.size) for a in range(3)], 1
+                )
+                local = sums[keep] / counts[keep, None] - base  # (n,3) mean point in [0,1)^3
+            else:
+                local = means[keep]
             for axis in range(3):
                 for side, hit in ((-1, local[:, axis] < 0.1), (1, local[:, axis] > 0.9)):
                     nb = base[hit].copy()
                     nb[:, axis] += side
                     chosen.append(encode(nb))
-        return np.unique(np.concatenate(chosen)), encode(cells.coords)
+        return np.unique(np.concatenate(chosen)), encode(coords)
+
+    def _cell_stats(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The numba kernel's distinct cells, counts and mean points (h2viz.mapping.octree_numba), or None where it
+        does not apply (numba missing, no points, a box too large for a dense grid)."""
+        if self._cell_kernel is None or len(points_world) == 0:
+            return None
+        points = np.ascontiguousarray(points_world, dtype=np.float32)
+        coords, counts, means = self._cell_kernel(points, self.voxel_size_m, 1 << 22)
+        return None if counts.size == 0 else (coords, counts, means)
 
     def allocate(self, points_world: np.ndarray) -> Allocation:
         """Allocate voxels for one frame's back-projected points (N,3); corners are created with them."""

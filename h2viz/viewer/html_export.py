@@ -14,8 +14,8 @@ import numpy as np
 
 from h2viz.viewer.layers import LayerSet
 from h2viz.viewer.recording import Recording, RecordingError
-from h2viz.viewer.server import make_viser_server
 from h2viz.viewer.shapes import initial_view
+from h2viz.viewer.viser_server import make_viser_server
 
 STEP_LABEL = "/replay/step"  # a label naming the step shown ("step k / N"), which the page also shows
 

@@ -94,7 +94,9 @@ class Panels:
             "Step one frame", icon=viser.Icon.PLAYER_TRACK_NEXT, hint="Map exactly one frame"
         )
         self.realtime = gui.add_checkbox(
-            "Real-time", s.realtime, hint="Map the newest frame, drop the ones missed"
+            "Real-time",
+            s.realtime,
+            hint="Play at the stream's rate: integrate every frame, optimise between frames and after the end",
         )
         self.stride = gui.add_number(
             "Stride", int(s.stride), min=1, max=100, step=1, hint="Use every k-th frame"

@@ -18,9 +18,9 @@ import viser
 from h2viz.viewer.layers import LayerSet
 from h2viz.viewer.panels import build_layer_controls
 from h2viz.viewer.recording import Recording
-from h2viz.viewer.server import make_viser_server
 from h2viz.viewer.shapes import initial_view
 from h2viz.viewer.status import progress_markdown
+from h2viz.viewer.viser_server import make_viser_server
 
 log = logging.getLogger("h2viz.replay")
 SPEEDS = ("0.25x", "0.5x", "1x", "2x", "4x", "8x")

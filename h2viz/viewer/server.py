@@ -5,7 +5,6 @@ call) composes source + mapper -> MappingWorker -> Dashboard; only it imports th
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import io
 import logging
@@ -13,13 +12,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import viser
-from viser.theme import TitlebarConfig, TitlebarImage
 
 from h2viz.config import Config
 from h2viz.sources.base import FrameSource, make_source
@@ -28,49 +24,12 @@ from h2viz.viewer.layers import LayerSet
 from h2viz.viewer.panels import Panels
 from h2viz.viewer.render_loop import RenderLoop
 from h2viz.viewer.shapes import initial_view
+from h2viz.viewer.viser_server import make_viser_server
 from h2viz.worker import MappingWorker
 
 log = logging.getLogger("h2viz.viewer")
 UPDATE_HZ = 5.0  # largest rate of panel refreshes
 SCENE_PERIOD_S = 1.0  # scene nodes follow the newest snapshot at least this often, and whenever the mesh changed
-
-
-class LocalViserServer(viser.ViserServer):
-    """A ViserServer that never opens a share tunnel (no outbound connections), even on request."""
-
-    def request_share_url(self, verbose: bool = True) -> str | None:
-        log.warning("share links are disabled in h2viz; the dashboard stays on this machine")
-        return None
-
-
-LOGO = resources.files("h2viz") / "assets" / "logo.svg"
-"""The dashboard's logo, shipped with h2viz (assets/logo.svg in a clone)."""
-
-
-def logo() -> TitlebarImage:
-    """The logo as an inline image for the title bar (no request back to the server)."""
-    data = base64.b64encode(LOGO.read_bytes()).decode()
-    url = f"data:image/svg+xml;base64,{data}"
-    return TitlebarImage(image_url_light=url, image_url_dark=url, image_alt="h2viz", href=None)
-
-
-def make_viser_server(host: str, port: int, label: str = "h2viz") -> LocalViserServer:
-    """Start a quiet, local-only viser server (dark theme, no share button)."""
-    with contextlib.redirect_stdout(io.StringIO()):  # viser announces itself on stdout
-        server = LocalViserServer(host=host, port=port, label=label, verbose=False)
-    server.gui.configure_theme(
-        titlebar_content=TitlebarConfig(buttons=None, image=logo()),
-        dark_mode=True,
-        show_share_button=False,
-        show_logo=False,
-        brand_color=(40, 150, 255),
-        control_width="large",
-    )
-    # Plain lights, no environment map: its prefiltering stalls software-rendered browsers for seconds.
-    server.scene.configure_environment_map(None)
-    server.scene.configure_default_lights(cast_shadow=False)
-    server.scene.add_light_hemisphere("/lights/sky", sky_color=(255, 255, 255), ground_color=(110, 110, 120))
-    return server
 
 
 class Dashboard:

@@ -12,6 +12,12 @@ import viser.uplot as uplot
 from h2viz.types import MapSnapshot
 from h2viz.viewer.shapes import colorize_depth
 
+PHASE_TEXT = {
+    "streaming": "every frame integrated, optimising between frames",
+    "sharpening": "optimising until the loss stops improving",
+    "settled": "the loss stopped improving",
+}
+"""How the progress panel names the real-time phases (h2viz.mapping.anytime.Phase)."""
 PLOT_POINTS = 400  # newest frames shown in the plots
 LOSS_COLORS = ["#ff8c00", "#28aaff", "#5ad45a", "#e04f5f", "#b77bff", "#f0d040"]
 METRIC_LABELS = {
@@ -34,13 +40,16 @@ def progress_markdown(snap: MapSnapshot) -> str:
         state += f", {snap.refine_left} refinement steps queued"
     elif snap.refined:
         state += f", refined {snap.refined} steps"
+    if snap.phase and not snap.paused:
+        state += f" (real time: {PHASE_TEXT.get(snap.phase, snap.phase)})"
     total = snap.frames_total if snap.frames_total is not None else "?"
     rows = [
         ("State", state),
         ("Frames", f"{snap.frames_done} / {total}"),
-        ("Dropped / skipped", f"{snap.dropped} / {snap.skipped}"),
+        ("Integrated / dropped / skipped", f"{snap.frames_done} / {snap.dropped} / {snap.skipped}"),
         ("Time per frame", f"{1000 * float(np.mean(recent)):.0f} ms" if recent else "-"),
         ("Iterations", str(last.iterations) if last else "-"),
+        *([("Optimisation steps", f"{snap.opt_steps:,}")] if snap.phase else []),
         ("Voxels", f"{len(snap.voxel_coords):,}"),
         ("Keyframes", str(len(snap.keyframes))),
         ("Mesh chunks", str(len(snap.chunks))),

@@ -134,7 +134,8 @@ class CommandServing:
     def _render_slices(self) -> None:
         """Advance pending renders band by band (round robin) within a time budget that keeps
         mapping going: about as long as the last frame took to map."""
-        budget = 0.25 if self._idle() else max(0.1, self._last_map_s)
+        # between frames; in real-time mode a short slice, since frames arrive every ~33 ms
+        budget = 0.25 if self._idle() else max(0.02 if self.settings.realtime else 0.1, self._last_map_s)
         deadline = time.perf_counter() + budget
         while self._renders and time.perf_counter() < deadline:
             cmd, job = self._renders[0]

@@ -1,5 +1,6 @@
 """The worker's live settings and the frame feed: a reader thread that loads frames ahead of the
-mapper, either every frame in order or, in real-time mode, the newest one at the frames' own rate."""
+mapper, either every frame in order or, in real-time mode, each frame at the stream's own rate (every one kept
+until it is integrated, up to a backlog; frames beyond it, and those a slow reader passes over, are counted)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ END = object()  # marks the end of the frame stream
 class WorkerSettings:
     """What Commands of kind `set` may change while the worker runs."""
 
-    realtime: bool = False  # map the newest frame, drop the older ones
+    realtime: bool = False  # play at the stream's rate; integrate every frame, optimise between frames
     stride: int = 1  # use every k-th frame of the source
     mesh_every: int = 5  # with mesh_update_hz = 0: mesh every this many frames (0 = when idle and at the end)
     mesh_update_hz: float = 2.0  # mesh after every frame; publish mesh changes at most this often (0 = no live)
@@ -35,16 +36,21 @@ class WorkerSettings:
 
 class FrameFeed:
     """Reads frames on its own thread; every-frame mode queues two ahead, real-time mode plays at
-    the frames' timestamp rate and keeps only the newest unmapped frame (replaced ones are dropped)."""
+    the frames' timestamp rate and keeps every frame that arrives until it is taken, up to `backlog` waiting
+    frames: when that many wait, the oldest is dropped (counted in `dropped`, as are frames the reader was too
+    slow to read in time)."""
 
-    def __init__(self, source: FrameSource, settings: WorkerSettings, max_frames: int) -> None:
+    def __init__(self, source: FrameSource, settings: WorkerSettings, max_frames: int, backlog: int = 30) -> None:
         self._source, self._settings, self._max_frames = source, settings, max_frames
+        self._backlog = max(1, int(backlog))
         self._items = list(enumerate(source.keys()))  # (position, key) before stride
         self._cond = threading.Condition()
         self._frames: deque[Any] = deque()
         self._stop = threading.Event()
         self._hold = threading.Event()  # set while mapping is paused (real-time clock stops)
-        self.dropped = 0
+        self.dropped = 0  # frames not delivered: passed_over + overflowed
+        self.passed_over = 0  # real-time mode: due before the reader got to them (a slow source)
+        self.overflowed = 0  # real-time mode: pushed out of a full backlog (integration fell behind)
         self.read = 0  # frames read or skipped so far
         self._position = 0
         self._thread = threading.Thread(target=self._run, name="h2viz-frames", daemon=True)
@@ -68,6 +74,11 @@ class FrameFeed:
         total = self.read + remaining
         return min(total, self._max_frames) if self._max_frames > 0 else total
 
+    def ready(self) -> bool:
+        """A frame (or the end of the stream) is waiting to be taken."""
+        with self._cond:
+            return bool(self._frames)
+
     def take(self, timeout_s: float) -> Any:
         """The next frame, END when the stream is over, or None when nothing arrived in time."""
         with self._cond:
@@ -90,6 +101,7 @@ class FrameFeed:
                 if overdue:  # passed over without reading it
                     with self._cond:
                         self.dropped += 1
+                        self.passed_over += 1
                     continue
                 frame = self._source.get(*item)
                 if frame is not None:
@@ -101,12 +113,14 @@ class FrameFeed:
             self._cond.notify_all()
 
     def _overdue(self, clock: tuple[float, float] | None) -> bool:
-        """Real-time playback whose reading fell behind (a slow source, or a rendered one): when the frame after
-        the current one is due already by the stream's clock, the current one is passed over without reading it
-        (sources that know timestamps before loading; the others are read and then dropped)."""
+        """Real-time playback whose reading fell behind (a slow source, or a rendered one): when the frame a whole
+        backlog after the current one is due already by the stream's clock, the current one would be pushed out of
+        the backlog anyway, and is passed over without reading it (sources that know timestamps before loading; the
+        others are read and then dropped). A reader that is merely late (its thread waited for the CPU) still
+        delivers every frame."""
         if not self._settings.realtime or clock is None or self._hold.is_set():
             return False
-        following = self._position + max(1, self._settings.stride)
+        following = self._position + self._backlog * max(1, self._settings.stride)
         if following >= len(self._items):
             return False
         due = self._source.timestamp(*self._items[following])
@@ -126,17 +140,23 @@ class FrameFeed:
             clock = (time.monotonic(), frame.timestamp)
         self._stop.wait(max(0.0, clock[0] + (frame.timestamp - clock[1]) - time.monotonic()))
         with self._cond:
-            if self._frames and self._frames[-1] is not END:
-                self._frames.pop()
+            while len(self._frames) >= self._backlog and self._frames[0] is not END:
+                self._frames.popleft()  # integration fell a whole backlog behind the stream
                 self.dropped += 1
+                self.overflowed += 1
             self._frames.append(frame)
             self._cond.notify_all()
         return clock
 
 
+def realtime_from_config(cfg: Config) -> bool:
+    """Real-time mode (source.realtime; `--realtime` and the dashboard's toggle set it)."""
+    return cfg.source.realtime
+
+
 def settings_from_config(cfg: Config) -> WorkerSettings:
     return WorkerSettings(
-        realtime=cfg.source.realtime,
+        realtime=realtime_from_config(cfg),
         stride=max(1, cfg.source.stride),
         mesh_every=cfg.mapping.mesh_every,
         mesh_update_hz=cfg.viewer.mesh_update_hz,

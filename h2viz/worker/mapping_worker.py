@@ -1,7 +1,11 @@
 """MappingWorker: the one thread that owns the mapper (all torch state). It maps frames from the
 feed, serves Commands between frames (render bands are interleaved with mapping under a time
 budget) and publishes a frozen MapSnapshot into its LatestSlot after every change. Mesh extraction
-runs beside it on a MeshThread, from a frozen copy of the field taken after each frame."""
+runs beside it on a MeshThread, from a frozen copy of the field taken after each frame.
+
+In real-time mode it maps anytime (h2viz.mapping.anytime): every frame the feed delivers is integrated, single
+optimisation steps fill the time between frames, and when the stream ends (or no frame came for STREAM_PAUSE_S)
+the map keeps sharpening over its keyframes until the loss plateaus or the user pauses."""
 
 from __future__ import annotations
 
@@ -20,6 +24,7 @@ import numpy as np
 
 from h2viz.config import Config
 from h2viz.errors import H2vizError
+from h2viz.mapping.anytime import Action, AnytimeSchedule, Phase, check_anytime, plateau_from
 from h2viz.mapping.autosave import Autosaver, run_state
 from h2viz.types import Command, FrameStats, MapSnapshot, RgbdFrame
 from h2viz.worker import requests
@@ -44,6 +49,7 @@ MESH_DEADLINE_S = 0.3  # a mesh job still on its required chunks this long after
 MESH_WAIT_MAX_S = 2.0  # ... for at most this long at a time
 REQUEST_FAULT_AUTOSAVE_S = 60.0  # a failing render or export autosaves at most this often (renders come in streams)
 STATS_KEPT = 2000  # per-frame stats the snapshots carry (the plots show the latest); older ones are counted only
+STREAM_PAUSE_S = 1.0  # real-time mode: no frame for this long, and the steps sharpen every keyframe instead
 
 
 def rss_mb() -> float:
@@ -76,7 +82,14 @@ class MappingWorker(CommandServing):
         self.settings = settings or settings_from_config(cfg)
         self.slot: LatestSlot[MapSnapshot] = LatestSlot()
         self.mapped_at: dict[int, float] = {}  # frame index -> time.time() when its mapping finished
-        self._feed = FrameFeed(source, self.settings, cfg.source.max_frames)
+        check_anytime(cfg.anytime)
+        self._feed = FrameFeed(source, self.settings, cfg.source.max_frames, cfg.anytime.backlog_frames)
+        self._schedule = AnytimeSchedule(cfg.anytime.opt_share)
+        self._plateau = plateau_from(cfg.anytime)
+        self._phase = ""  # real-time mode: a Phase value ("" in every-frame mode)
+        self._opt_steps = self._newest_steps = 0  # real-time steps in all, and on the newest frame
+        self._sharpen_s = 0.0
+        self._last_frame_t = time.monotonic()
         self._commands: queue.Queue[Command] = queue.Queue()
         self._stop = threading.Event()
         self._paused = cfg.viewer.start_paused
@@ -200,12 +213,15 @@ class MappingWorker(CommandServing):
             self._feed.start()
             self._publish()
             while not self._stop.is_set():
-                self._serve_commands(0.05 if self._idle() and not (self._renders or self._refine_left) else 0.0)
+                busy = self._renders or self._refine_left or self._sharpening()
+                self._serve_commands(0.05 if self._idle() and not busy else 0.0)
                 self._render_slices()
                 if not self._idle():
                     self._map_next()
                 elif self._refine_left:
                     self._refine_slice()
+                elif self._sharpening():
+                    self._sharpen_slice()
                 elif not self.meshing.busy:  # bring stale chunks up to date while nothing maps
                     self._submit_mesh(IDLE_REFRESH_S)
                 self._after_mesh_failure()
@@ -223,25 +239,108 @@ class MappingWorker(CommandServing):
         return self._finished or (self._paused and not self._steps)
 
     def _map_next(self) -> None:
+        if self.settings.realtime and not self._steps:
+            self._map_anytime()
+            return
         item = self._feed.take(0.05)
         if item is END:
-            self._finished = True
-            self._resolve_steps(None)
-            self._remesh()
-            if self._gt is not None:
-                self._refresh_metrics()
-            self._publish()
+            self._end_stream()
         elif item is not None and item.index > self._resume_after:  # a resumed run passes over what it mapped
             self._integrate(item)
 
-    def _integrate(self, frame: RgbdFrame) -> None:
+    def _end_stream(self) -> None:
+        self._finished = True
+        self._resolve_steps(None)
+        if self.settings.realtime:
+            self._close_newest()
+            self._phase = Phase.SHARPENING.value
+            self._plateau.reset()
+        self._remesh()
+        if self._gt is not None:
+            self._refresh_metrics()
+        self._publish()
+
+    # -- anytime mapping (real-time mode) --------------------------------------------------------
+    def _map_anytime(self) -> None:
+        """Integrate the waiting frame, or take one optimisation step (AnytimeSchedule decides)."""
+        if not self._phase:
+            self._phase = Phase.STREAMING.value
+        action = self._schedule.next(self._feed.ready(), self.mapper.frames_done > 0)
+        if action is Action.STEP and time.monotonic() - self._last_frame_t < STREAM_PAUSE_S:
+            self._timed_step(self.mapper.live_step)
+            self._newest_steps += 1
+            return
+        if action is Action.STEP and self._phase != Phase.SETTLED.value:  # the stream paused: sharpen
+            self._phase = Phase.SHARPENING.value
+            self._sharpen_slice()
+            return
+        item = self._feed.take(0.05 if action is not Action.INTEGRATE else 0.0)
+        if item is END:
+            self._end_stream()
+        elif item is not None and item.index > self._resume_after:
+            self._integrate(item, anytime=True)
+
+    def _timed_step(self, step: Any) -> float:
+        t0 = time.perf_counter()
+        loss = float(step())
+        seconds = time.perf_counter() - t0
+        self._schedule.did_step(seconds)
+        self._opt_steps += 1
+        self._between_steps()
+        return loss if np.isfinite(loss) else float("nan")
+
+    def _sharpen_step(self) -> None:
+        """One step over random keyframes after (or during a pause of) the stream; settles on a loss plateau."""
+        t0 = time.perf_counter()
+        loss = self._timed_step(self.mapper.refine_step)
+        self._sharpen_s += time.perf_counter() - t0
+        limit = self.cfg.anytime.sharpen_max_s
+        if self._plateau.add(loss) or not self.mapper.keyframe_rays or limit <= 0 or self._sharpen_s >= limit:
+            self._phase = Phase.SETTLED.value
+            if self._gt is not None:
+                self._refresh_metrics()
+            self._publish()
+
+    def _sharpening(self) -> bool:
+        """Real-time mode after the stream: optimisation goes on until it settles or the user pauses."""
+        return self._finished and not self._paused and self._phase == Phase.SHARPENING.value
+
+    def _sharpen_slice(self) -> None:
+        """A few sharpening steps (fewer when it settles or a frame arrives), then the mesh follows."""
+        for _ in range(REFINE_SLICE):
+            self._sharpen_step()
+            if self._phase != Phase.SHARPENING.value or self._feed.ready() or self._paused:
+                break
+        if self.live and not self.meshing.busy:
+            self._submit_mesh(REFRESH_S)
+        self._publish()
+
+    def _close_newest(self) -> None:
+        """The newest frame's stats get the live steps taken while it was the newest."""
+        if self._stats and self._newest_steps:
+            self._stats[-1] = replace(self._stats[-1], iterations=self._newest_steps)
+        self._newest_steps = 0
+
+    def _integrate(self, frame: RgbdFrame, anytime: bool = False) -> None:
+        """Map one frame: with all its optimisation steps, or (`anytime`) integrate it alone."""
         t0 = time.perf_counter()
         try:
-            stats = self.mapper.integrate(frame)
+            if anytime:
+                self._close_newest()
+                a = self.cfg.anytime
+                stats = self.mapper.add_frame(frame, a.color_points, a.observed_points)
+            else:
+                stats = self.mapper.integrate(frame)
         except Exception as e:
             self._on_failure(frame, e)
             return
         self._last_map_s = time.perf_counter() - t0
+        if anytime:
+            self._schedule.did_integrate(self._last_map_s)
+            self._last_frame_t = time.monotonic()
+            if self._phase != Phase.STREAMING.value:  # frames again after a pause
+                self._phase = Phase.STREAMING.value
+                self._plateau.reset()
         self.mapped_at[frame.index] = time.time()
         self._consecutive = 0
         self._unmeshed += 1
@@ -409,6 +508,8 @@ class MappingWorker(CommandServing):
                 memory_mb=rss_mb(),
                 refine_left=self._refine_left,
                 refined=self._refined,
+                phase=self._phase,
+                opt_steps=self._opt_steps,
             )
             self._last_snap = snap
             self.slot.put(snap)

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from h2viz.mapping.octree import CORNER_OFFSETS, KeyIndex, VoxelOctree, decode, encode, occupied_cells
+from tests.mapping.backends import needs_numba
 
 
 def cloud_in_voxel(
@@ -105,3 +106,28 @@ def test_occupied_cells_match_numpy_unique(far_point: bool) -> None:
 def test_occupied_cells_of_nothing() -> None:
     cells = occupied_cells(np.zeros((0, 3), np.int64))
     assert cells.coords.shape == (0, 3) and cells.inverse.size == 0 and cells.counts.size == 0
+
+
+@needs_numba
+def test_the_allocation_kernel_matches_the_numpy_reference() -> None:
+    from h2viz.mapping import octree_numba
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-1.0, 2.0, (20000, 3)).astype(np.float32)
+    points[:5000, 0] = np.round(points[:5000, 0], 1)  # on voxel faces, where rounding picks the side
+    tree = VoxelOctree(0.1, min_points=3, cell_stats=octree_numba.cell_stats)
+    fused_keys, fused_hit = tree.candidate_voxels(points)
+    numpy_keys, numpy_hit = VoxelOctree(0.1, min_points=3).candidate_voxels(points)
+    np.testing.assert_array_equal(fused_keys, numpy_keys)
+    np.testing.assert_array_equal(np.sort(fused_hit), np.sort(numpy_hit))
+    coords, counts, means = octree_numba.cell_stats(points, 0.1, 1 << 22)
+    cells = occupied_cells(np.floor(points / np.float32(0.1)).astype(np.int64))
+    np.testing.assert_array_equal(coords, cells.coords)
+    np.testing.assert_array_equal(counts, cells.counts)
+    scaled = points / np.float32(0.1)
+    sums = np.stack([np.bincount(cells.inverse, scaled[:, a]) for a in range(3)], 1)
+    np.testing.assert_allclose(means, sums / cells.counts[:, None] - cells.coords, atol=1e-9)
+    assert (means >= -1e-6).all() and (means <= 1 + 1e-6).all()
+    empty = octree_numba.cell_stats(np.array([[0, 0, 0], [1e5, 1e5, 1e5]], np.float32), 0.1, 1 << 22)
+    assert empty[1].size == 0  # a box too large for the dense grid: the caller sorts instead
+    assert fused_keys.size and fused_hit.size == len(cells.coords)

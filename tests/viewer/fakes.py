@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Hashable, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -112,6 +113,11 @@ class FakeMapper:
         self.in_frame = False  # inside integrate(), between optimisation steps
         self.refine_calls: list[int] = []  # steps asked of each refine() call
         self.on_iteration: Callable[[], None] | None = None
+        self.frames_done = 0
+        self.add_delay_s = 0.0  # real-time mode: seconds `add_frame` takes...
+        self.step_delay_s = 0.0  # ...and each live or refinement step
+        self.live_steps = self.refine_steps = 0
+        self.events: list[tuple[str, int]] = []  # ("add", frame index) / ("live", frame) / ("refine", -1) in order
 
     @property
     def mesh_resolution(self) -> int:
@@ -131,6 +137,31 @@ class FakeMapper:
         self._observed_only = bool(value)
         self._dirty |= set(self._chunks)
 
+    @property
+    def keyframe_rays(self) -> list[KeyframeInfo]:
+        return self._keyframes
+
+    def add_frame(self, frame: RgbdFrame, color_points: int = 0, observed_points: int = 0) -> FrameStats:
+        """Real-time integration: the frame's voxels, no steps."""
+        if frame.index in self.fail_frames:
+            raise RuntimeError(f"mapping frame {frame.index} failed on purpose")
+        time.sleep(self.add_delay_s)
+        self.events.append(("add", frame.index))
+        return replace(self._add(frame), iterations=0, map_time_s=self.add_delay_s)
+
+    def live_step(self) -> float:
+        time.sleep(self.step_delay_s)
+        self.live_steps += 1
+        self.events.append(("live", self.frames_done - 1))
+        return 1.0 / self.live_steps
+
+    def refine_step(self) -> float:
+        """A loss that falls, then stays flat from the 100th step on."""
+        time.sleep(self.step_delay_s)
+        self.refine_steps += 1
+        self.events.append(("refine", -1))
+        return 0.5 + 1.0 / min(self.refine_steps, 100)
+
     def integrate(self, frame: RgbdFrame) -> FrameStats:
         if frame.index in self.fail_frames:
             raise RuntimeError(f"mapping frame {frame.index} failed on purpose")
@@ -143,7 +174,11 @@ class FakeMapper:
                     self.on_iteration()
         finally:
             self.in_frame = False
+        return self._add(frame)
+
+    def _add(self, frame: RgbdFrame) -> FrameStats:
         self._version += 1
+        self.frames_done += 1
         v, u = np.nonzero(frame.depth_m[::2, ::2] > 0)
         z = frame.depth_m[::2, ::2][v, u]
         p = np.stack([(2 * u - frame.K[0, 2]) / frame.K[0, 0] * z, (2 * v - frame.K[1, 2]) / frame.K[1, 1] * z, z], 1)

@@ -15,7 +15,7 @@ from skimage.measure import marching_cubes
 
 from h2viz.types import MeshChunk
 from h2viz.viewer.layers import MeshLayer
-from h2viz.viewer.server import make_viser_server
+from h2viz.viewer.viser_server import make_viser_server
 from tests.viewer.browser import launch, wait_until
 
 pytestmark = pytest.mark.browser

@@ -18,13 +18,13 @@ from h2viz.types import FrameStats
 from h2viz.viewer.diff import block_signatures, diff_chunks, diff_signatures, group_cells
 from h2viz.viewer.glb import mesh_glb, srgb_to_linear_u8
 from h2viz.viewer.render_loop import FAR_M, background, client_view
-from h2viz.viewer.server import initial_view, make_viser_server
 from h2viz.viewer.shapes import (
     MAX_TRAJECTORY_SEGMENTS,
     colorize_depth,
     cube_edges,
     fov_aspect,
     frame_points,
+    initial_view,
     pose_from_wxyz,
     to_rgb8,
     trajectory_segments,
@@ -32,6 +32,7 @@ from h2viz.viewer.shapes import (
     wxyz_position,
 )
 from h2viz.viewer.status import StatusPanels, plot_data, progress_markdown
+from h2viz.viewer.viser_server import make_viser_server
 from h2viz.worker import RenderedView
 from tests.viewer.fakes import BoxRoomSource, chunk, snapshot
 

@@ -1,0 +1,133 @@
+"""Anytime mapping: when a live stream's frames are integrated and when the map is optimised.
+
+H2-Mapping's geometry comes from the octree and its SDF priors, which a single frame's depth fills in; the
+optimisation only sharpens them. So in real-time mode every frame that arrives is integrated (rays, voxels,
+priors, colour prior, observed cells, keyframe decision; `Mapper.add_frame`) and optimisation steps run in the time
+left between frames (`Mapper.live_step`, on the newest frame and its coverage-selected keyframes), instead of a
+fixed number of steps per frame that makes a 30 Hz stream drop most of its frames.
+
+`AnytimeSchedule` makes the decision (integrate the waiting frame, or take a step) from the seconds each costs, so
+that integration comes first while optimisation keeps at least `opt_share` of the mapping thread's time when frames
+arrive faster than both fit. `Plateau` ends the optimisation after the stream ends once the loss stops improving.
+Neither measures time itself: callers pass the seconds in (tests drive them with a fake clock).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+from h2viz.config import AnytimeConfig
+from h2viz.errors import ConfigError
+
+
+class Action(str, Enum):
+    INTEGRATE = "integrate"  # integrate the oldest waiting frame
+    STEP = "step"  # one optimisation step
+    WAIT = "wait"  # nothing to do: no frame waiting and nothing to optimise (or optimisation has settled)
+
+
+class Phase(str, Enum):
+    """What the anytime mapper is doing, as the dashboard shows it."""
+
+    STREAMING = "streaming"  # frames arriving; steps between them
+    SHARPENING = "sharpening"  # the stream ended or paused; optimisation goes on over the keyframes
+    SETTLED = "settled"  # the loss stopped improving (or the time limit was reached); nothing runs
+    STOPPED = "stopped"  # the user stopped the optimisation
+
+
+def check_anytime(cfg: AnytimeConfig) -> None:
+    """ConfigError naming the anytime.* field that is out of range."""
+    if not 0.0 <= cfg.opt_share < 1.0:
+        raise ConfigError(f"anytime.opt_share must lie in [0, 1), got {cfg.opt_share}")
+    if cfg.backlog_frames < 1:
+        raise ConfigError(f"anytime.backlog_frames must be >= 1, got {cfg.backlog_frames}")
+    if cfg.plateau_window < 1 or cfg.plateau_patience < 1:
+        raise ConfigError("anytime.plateau_window and anytime.plateau_patience must be >= 1")
+    if cfg.plateau_tol < 0.0 or cfg.sharpen_max_s < 0.0:
+        raise ConfigError("anytime.plateau_tol and anytime.sharpen_max_s must be >= 0")
+
+
+class AnytimeSchedule:
+    """Integration first, with optimisation owed `opt_share` of the mapping time.
+
+    Every integration of c seconds makes optimisation owed c * share / (1 - share) seconds. A waiting frame is
+    integrated unless a step is owed; a step taken while one is owed pays its seconds off, and what it overpays
+    (a step is longer than what one frame owes) is credit the next integrations use first. With no frame waiting,
+    steps run freely and bank nothing, so that when frames come faster again they are integrated at once. Over any
+    stretch where frames keep waiting, steps therefore take `opt_share` of the time and integration the rest.
+    """
+
+    def __init__(self, opt_share: float) -> None:
+        if not 0.0 <= opt_share < 1.0:
+            raise ConfigError(f"anytime.opt_share must lie in [0, 1), got {opt_share}")
+        self.ratio = opt_share / (1.0 - opt_share)
+        self.owed_s = 0.0  # > 0: step time owed; < 0: credit from a step that overpaid
+        self.integrated = 0
+        self.steps = 0
+        self.integrate_s = 0.0
+        self.step_s = 0.0
+
+    def next(self, frame_waiting: bool, can_step: bool) -> Action:
+        """What to do now: a frame is waiting; the map has something to optimise."""
+        if frame_waiting and (self.owed_s <= 0.0 or not can_step):
+            return Action.INTEGRATE
+        if can_step:
+            return Action.STEP
+        return Action.WAIT
+
+    def did_integrate(self, seconds: float) -> None:
+        self.integrated += 1
+        self.integrate_s += seconds
+        self.owed_s += seconds * self.ratio
+
+    def did_step(self, seconds: float) -> None:
+        self.steps += 1
+        self.step_s += seconds
+        if self.owed_s > 0.0:  # a step that was owed: its overpayment is credit; free steps bank nothing
+            self.owed_s -= seconds
+
+
+@dataclass
+class Plateau:
+    """The loss has stopped improving: the mean over each `window` steps is compared with the best mean so far;
+    after `patience` windows in a row that are not below best * (1 - tol), the loss has plateaued. Losses of
+    single steps are noisy (each samples other rays), their window means are not."""
+
+    window: int = 50
+    patience: int = 3
+    tol: float = 0.005
+
+    def __post_init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.best = math.inf
+        self.flat_windows = 0
+        self._sum = 0.0
+        self._n = 0
+        self.means: list[float] = []
+
+    def add(self, loss: float) -> bool:
+        """Take one step's loss; True once the loss has plateaued."""
+        if math.isfinite(loss):
+            self._sum += loss
+            self._n += 1
+        if self._n >= self.window:
+            mean = self._sum / self._n
+            self.means.append(mean)
+            self._sum, self._n = 0.0, 0
+            if mean < self.best * (1.0 - self.tol):
+                self.best, self.flat_windows = mean, 0
+            else:
+                self.flat_windows += 1
+        return self.settled
+
+    @property
+    def settled(self) -> bool:
+        return self.flat_windows >= self.patience
+
+
+def plateau_from(cfg: AnytimeConfig) -> Plateau:
+    return Plateau(cfg.plateau_window, cfg.plateau_patience, cfg.plateau_tol)

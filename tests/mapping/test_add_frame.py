@@ -1,0 +1,90 @@
+"""Integration without optimisation (real-time mode's `Mapper.add_frame`) on analytic scenes: every frame's
+voxels and priors are in the map and the surface the priors alone put there lies within millimetres; live and
+refinement steps then optimise what was integrated."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from h2viz.mapping.mapper import Mapper
+from h2viz.mapping.rays import FrameRays
+from h2viz.types import RgbdFrame
+from tests.mapping.analytic import Scene, orbit
+from tests.mapping.backends import REFERENCE
+from tests.mapping.test_mapper import mesh_error, room_views, small_cfg
+
+torch.set_num_threads(2)
+
+
+def world_points(frame: RgbdFrame) -> np.ndarray:
+    """World points (N,3) of a frame's valid depth pixels, rounded as the mapper computes them (the room's walls
+    lie on voxel faces, where float32 rounding decides the side)."""
+    return FrameRays.with_points(frame, REFERENCE)[1]
+
+
+def parameters(mapper: Mapper) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in mapper.field.parameters()]
+
+
+def check_frames_in_map(mapper: Mapper, frames: list[RgbdFrame]) -> None:
+    """Every voxel holding more than min_points of a frame's depth points is allocated, most of them with all 8
+    corner priors set (a voxel at the edge of the view waits for a frame that sees all its corners), and nearly all
+    of the frame's points lie in allocated voxels."""
+    initialised = mapper.priors.initialised(mapper.octree.n_voxels)
+    vs, n_min = mapper.octree.voxel_size_m, mapper.octree.min_points
+    for frame in frames:
+        points = world_points(frame)
+        cells, counts = np.unique(np.floor(points / vs).astype(np.int64), axis=0, return_counts=True)
+        dense = torch.from_numpy((cells[counts > n_min] + 0.5) * vs).float()
+        ids = mapper.octree.lookup_points(dense).numpy()
+        assert (ids >= 0).all(), f"frame {frame.index}: {(ids < 0).sum()} of its voxels are not allocated"
+        assert initialised[ids].mean() > 0.75, f"frame {frame.index}: priors missing"  # edge voxels wait
+        point_ids = mapper.octree.lookup_points(torch.from_numpy(points).float()).numpy()
+        assert (point_ids >= 0).mean() > 0.98  # the rest: in voxels with too few points
+
+
+def test_add_frame_keeps_every_frames_plane_within_millimetres_without_a_step() -> None:
+    scene = Scene("plane")
+    mapper = Mapper(small_cfg())  # max_iters = 10: add_frame must not run any of them
+    before = parameters(mapper)
+    frames = [scene.frame(i, T) for i, T in enumerate(orbit(scene, 4, 0.6, 1.2, np.zeros(3)))]
+    stats = [mapper.add_frame(f) for f in frames]
+    assert [s.iterations for s in stats] == [0, 0, 0, 0] and mapper.frames_done == 4
+    assert all(torch.equal(a, b) for a, b in zip(before, parameters(mapper), strict=True))  # no optimisation
+    check_frames_in_map(mapper, frames)
+    twin = Mapper(small_cfg(max_iters=0))  # every-frame mode without its steps integrates the same map
+    for f in frames:
+        twin.integrate(f)
+    assert np.array_equal(twin.octree.voxels.keys, mapper.octree.voxels.keys)
+    assert torch.equal(twin.field.priors, mapper.field.priors)
+    assert torch.equal(twin.field.color_prior.sums, mapper.field.color_prior.sums)
+    err = mesh_error(mapper, scene)
+    assert np.median(err) < 0.002 and np.percentile(err, 95) < 0.006
+
+
+def test_add_frame_keeps_a_box_rooms_walls_within_millimetres() -> None:
+    scene, frames = room_views(12)
+    mapper = Mapper(small_cfg(min_points_per_voxel=2))
+    for frame in frames:
+        mapper.add_frame(frame, color_points=500, observed_points=500)
+    check_frames_in_map(mapper, frames)
+    assert len(mapper.keyframes) >= 2  # the keyframe decision is part of integration
+    err = mesh_error(mapper, scene)
+    assert np.median(err) < 0.004 and np.percentile(err, 90) < 0.012
+
+
+def test_live_steps_optimise_the_newest_frame_and_refinement_steps_the_keyframes() -> None:
+    scene, frames = room_views(8)
+    mapper = Mapper(small_cfg(min_points_per_voxel=2, fine_priors=False))  # the residual carries the geometry
+    assert np.isnan(mapper.live_step()) and np.isnan(mapper.refine_step())  # nothing integrated yet
+    for frame in frames:
+        mapper.add_frame(frame)
+    before = parameters(mapper)
+    mapper.touched[:] = False
+    losses = [mapper.live_step() for _ in range(40)]
+    assert not all(torch.equal(a, b) for a, b in zip(before, parameters(mapper), strict=True))
+    assert mapper.touched.any() and not mapper.touched.all()  # the newest frame's voxels are re-meshed
+    assert np.mean(losses[-10:]) < 0.8 * np.mean(losses[:5])
+    refined = [mapper.refine_step() for _ in range(40)]
+    assert mapper.touched.all() and np.all(np.isfinite(refined))

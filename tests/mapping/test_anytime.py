@@ -1,0 +1,139 @@
+"""The anytime schedule against a fake clock (no wall-clock time is measured): every frame of a 30 Hz stream is
+integrated, optimisation steps fill the time between frames and keep their share when frames come faster than
+both fit; continued optimisation after the stream stops once the loss plateaus."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from h2viz.config import AnytimeConfig
+from h2viz.errors import ConfigError
+from h2viz.mapping.anytime import Action, AnytimeSchedule, Phase, Plateau, check_anytime
+from h2viz.worker.anytime_run import AnytimeRun
+
+
+def simulate(
+    n_frames: int, rate_hz: float, integrate_s: float, step_s: float, share: float
+) -> tuple[AnytimeSchedule, list[str], list[float]]:
+    """Drive the schedule with frames arriving at `rate_hz` and fixed costs; returns the schedule, the actions in
+    order and each frame's delay from arrival to the end of its integration."""
+    schedule = AnytimeSchedule(share)
+    arrivals = [i / rate_hz for i in range(n_frames)]
+    now, done, log, delays = 0.0, 0, [], []
+    while done < n_frames:
+        waiting = arrivals[done] <= now
+        action = schedule.next(waiting, can_step=done > 0)
+        if action is Action.INTEGRATE:
+            now += integrate_s
+            schedule.did_integrate(integrate_s)
+            delays.append(now - arrivals[done])
+            done += 1
+        elif action is Action.STEP:
+            now += step_s
+            schedule.did_step(step_s)
+        else:  # nothing integrated yet and no frame: wait for the next one
+            now = arrivals[done]
+        log.append(action.value)
+    return schedule, log, delays
+
+
+def test_every_frame_is_integrated_and_steps_fill_the_time_between() -> None:
+    schedule, log, delays = simulate(300, 30.0, integrate_s=0.02, step_s=0.03, share=0.25)
+    assert schedule.integrated == 300  # none dropped
+    assert max(delays) < 0.02 + 0.03 + 0.02 + 1e-9  # at most one step (and one frame) in the way of a frame
+    # 10 s of stream, 6 s of it integration: the other 4 s are steps
+    assert 4.0 / 0.03 - 3 <= schedule.steps <= 4.0 / 0.03 + 3
+    assert log.count("step") == schedule.steps
+
+
+def test_optimisation_keeps_its_share_when_frames_come_faster_than_both_fit() -> None:
+    # integration alone takes 90 % of the stream's time: the backlog grows, but steps keep a quarter
+    schedule, log, delays = simulate(300, 30.0, integrate_s=0.03, step_s=0.01, share=0.25)
+    assert schedule.integrated == 300
+    share = schedule.step_s / (schedule.step_s + schedule.integrate_s)
+    assert share == pytest.approx(0.25, abs=0.01)
+    assert delays[-1] > 1.0  # the frames waited (the feed's backlog bounds this, counting what it drops)
+    runs = "".join("i" if a == "integrate" else "s" for a in log).split("i")[1:-1]
+    assert all(len(r) >= 1 for r in runs)  # never starved: each frame is followed by a step
+
+
+def test_integration_is_never_held_up_by_free_steps() -> None:
+    schedule = AnytimeSchedule(0.5)
+    for _ in range(100):  # a long quiet stretch of steps banks nothing
+        schedule.did_step(0.05)
+    assert schedule.next(frame_waiting=True, can_step=True) is Action.INTEGRATE
+    schedule.did_integrate(0.04)
+    assert schedule.next(frame_waiting=True, can_step=True) is Action.STEP  # 0.04 s owed at a half share
+    schedule.did_step(0.05)
+    assert schedule.next(frame_waiting=True, can_step=True) is Action.INTEGRATE
+    assert schedule.next(frame_waiting=False, can_step=False) is Action.WAIT
+
+
+def test_plateau_waits_while_the_loss_falls_and_stops_once_it_is_flat() -> None:
+    rng = np.random.default_rng(0)
+    plateau = Plateau(window=20, patience=3, tol=0.01)
+    steps = 0
+    for t in range(4000):
+        loss = (1.0 + 2.0 * math.exp(-t / 150.0)) * (1.0 + 0.05 * rng.standard_normal())  # noisy, then flat
+        steps += 1
+        if plateau.add(loss):
+            break
+    # the mean falls by >1 % a window until t ~ 150 * ln(2 * 20 / (0.01 * 1.0 * 150)) ~ 500, then three windows
+    assert 400 <= steps <= 1100
+
+
+class CountingMapper:
+    """What AnytimeRun.sharpen calls: refinement steps whose loss falls to a floor."""
+
+    def __init__(self, keyframes: int = 3) -> None:
+        self.keyframe_rays = list(range(keyframes))
+        self.steps = 0
+
+    def refine_step(self) -> float:
+        self.steps += 1
+        return float("nan") if not self.keyframe_rays else 1.0 + 10.0 / self.steps
+
+
+class FakeClock:
+    def __init__(self, tick_s: float) -> None:
+        self.now, self.tick_s = 0.0, tick_s
+
+    def __call__(self) -> float:
+        self.now += self.tick_s  # every reading advances: each step "takes" two ticks
+        return self.now
+
+
+def sharpener(mapper: CountingMapper, **cfg: float) -> AnytimeRun:
+    run = AnytimeRun(mapper, feed=None, cfg=AnytimeConfig(plateau_window=10, **cfg), clock=FakeClock(0.01))  # type: ignore[arg-type]
+    run.totals.phase = Phase.SHARPENING.value
+    return run
+
+
+def test_sharpening_after_the_stream_stops_when_the_loss_plateaus() -> None:
+    mapper = CountingMapper()
+    run = sharpener(mapper)
+    assert not run.sharpen(seconds=0.5)  # still improving after 0.5 s (fake): goes on when asked again
+    assert run.totals.phase == Phase.SHARPENING.value and 0 < mapper.steps < 100
+    assert run.sharpen()  # until the plateau
+    assert run.settled and run.plateau.settled
+    assert 100 < mapper.steps < 3000 and run.totals.sharpen_steps == mapper.steps
+    assert run.sharpen() and mapper.steps == run.totals.sharpen_steps  # settled: no more steps
+
+
+def test_sharpening_stops_at_its_time_limit_the_user_or_without_keyframes() -> None:
+    limited = sharpener(CountingMapper(), sharpen_max_s=1.0)
+    assert limited.sharpen() and limited.totals.sharpen_s == pytest.approx(1.0, abs=0.05)
+    stopped = sharpener(CountingMapper())
+    assert not stopped.sharpen(stop=lambda: True) and stopped.totals.phase == Phase.STOPPED.value
+    empty = sharpener(CountingMapper(keyframes=0))
+    assert empty.sharpen() and empty.totals.sharpen_steps == 1
+
+
+def test_bad_settings_name_the_field() -> None:
+    with pytest.raises(ConfigError, match="anytime.opt_share"):
+        check_anytime(AnytimeConfig(opt_share=1.0))
+    with pytest.raises(ConfigError, match="anytime.backlog_frames"):
+        check_anytime(AnytimeConfig(backlog_frames=0))
