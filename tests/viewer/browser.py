@@ -4,14 +4,19 @@ actually received from the viser server (decoded messages with their arrival tim
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
+from playwright import sync_api
 
+from h2viz.config import Config
 from h2viz.viewer.chromium import CHROMIUM, launch_chromium
+from h2viz.viewer.server import Dashboard
 from h2viz.viewer.wire import WireMessage, decode_frame
+from h2viz.worker import MappingWorker
 
 
 def launch(playwright: Any) -> Any:
@@ -19,6 +24,26 @@ def launch(playwright: Any) -> Any:
     if not CHROMIUM.exists():
         pytest.skip("chromium is not installed (apt-get install chromium)")
     return launch_chromium(playwright)
+
+
+@contextmanager
+def dashboard_page(worker: MappingWorker, cfg: Config) -> Iterator[tuple[Dashboard, Any, Any]]:
+    """The worker and a dashboard on a free port started, and a 900x650 chromium page not yet on it:
+    (dashboard, browser, page); all of it stopped afterwards."""
+    dashboard = Dashboard(worker, cfg, port=0)
+    worker.start()
+    dashboard.start()
+    try:
+        with sync_api.sync_playwright() as playwright:
+            browser = launch(playwright)
+            page = browser.new_page(viewport={"width": 900, "height": 650}, accept_downloads=True)
+            try:
+                yield dashboard, browser, page
+            finally:
+                browser.close()
+    finally:
+        dashboard.stop()
+        worker.stop()
 
 
 @dataclass

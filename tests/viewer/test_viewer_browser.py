@@ -19,7 +19,7 @@ import trimesh
 from h2viz.config import Config
 from h2viz.viewer.server import Dashboard
 from h2viz.worker import MappingWorker
-from tests.viewer.browser import WireRecorder, launch, wait_until
+from tests.viewer.browser import WireRecorder, dashboard_page, wait_until
 from tests.viewer.fakes import BoxRoomSource, recording_mapper, tiny_mapping_config
 
 pytestmark = pytest.mark.browser
@@ -43,21 +43,13 @@ def live() -> Iterator[Live]:
     cfg.viewer.render_width = 240
     mapper = recording_mapper(tiny_mapping_config(), delay_s=0.1)
     worker = MappingWorker(BoxRoomSource(n=400, width=64, height=48), mapper, cfg)
-    dashboard = Dashboard(worker, cfg, port=0)
-    worker.start()
-    dashboard.start()
-    with sync_api.sync_playwright() as playwright:
-        browser = launch(playwright)
-        page = browser.new_page(viewport={"width": 900, "height": 650}, accept_downloads=True)
+    with dashboard_page(worker, cfg) as (dashboard, browser, page):
         requests: list[str] = []
         page.on("request", lambda r: requests.append(r.url))
         wire = WireRecorder().attach(page)
         assert not worker.live  # no browser yet: nothing is meshed while mapping
         page.goto(dashboard.url)
         yield Live(worker, mapper, dashboard, browser, page, wire, requests)
-        browser.close()
-    dashboard.stop()
-    worker.stop()
 
 
 def test_scene_reaches_the_browser_and_grows(live: Live) -> None:
