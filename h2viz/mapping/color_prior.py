@@ -2,12 +2,13 @@
 
 H2-Mapping's geometry is an explicit prior (corner SDFs projected from depth) plus a hash-grid residual. Colour
 gets the same split here: every valid pixel's colour is splatted, with trilinear weights, onto the 8 nearest
-points of a (SUB+1)^3 lattice inside the voxel its measured surface point falls in (1.25 cm apart at 10 cm
-voxels), and the lattice holds the weighted sums. The prior at a point is the trilinear blend of the sums over the
-weights (lattice points nothing was splatted on do not pull it to black); the colour field adds its residual to
-the prior's logit, so the network learns only what an average of observations misses (texture finer than the
-lattice, shading it blurs) instead of every colour from scratch. A frame costs one pass over its pixels, with no
-optimisation: every pixel of every frame contributes, not only the few thousand rays a step samples.
+points of a (sub+1)^3 lattice inside the voxel its measured surface point falls in (sub =
+mapping.color_prior_cells: 0.83 cm apart at 12 and 10 cm voxels), and the lattice holds the weighted sums. The
+prior at a point is the trilinear blend of the sums over the weights (lattice points nothing was splatted on do
+not pull it to black); the colour field adds its residual to the prior's logit, so the network learns only what
+an average of observations misses (texture finer than the lattice, shading it blurs) instead of every colour from
+scratch. A frame costs one pass over its pixels, with no optimisation: every pixel of every frame contributes,
+not only the few thousand rays a step samples.
 """
 
 from __future__ import annotations
@@ -22,8 +23,8 @@ from h2viz.mapping.octree import VoxelOctree
 if TYPE_CHECKING:
     from h2viz.mapping.backend import Backend
 
-SUB = 8
-"""Lattice cells per voxel edge (SUB + 1 lattice points per edge, 1.25 cm apart at 10 cm voxels)."""
+SUB = 12
+"""Default lattice cells per voxel edge (SUB + 1 lattice points per edge, 0.83 cm apart at 10 cm voxels)."""
 EMPTY = 0.5
 """Colour of the prior where nothing was observed (logit 0: the residual alone decides)."""
 LOGIT_EPS = 1e-3
@@ -33,15 +34,20 @@ _OFFSETS = torch.tensor([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz i
 
 
 class ColorPrior:
-    """Weighted colour sums (V, (SUB+1)^3, 4) on each leaf voxel's lattice: r, g, b times weight, and the weight.
+    """Weighted colour sums (V, (sub+1)^3, 4) on each leaf voxel's lattice: r, g, b times weight, and the weight.
     A backend with tensor kernels runs the numba ones (h2viz.mapping.color_prior_numba) on the CPU; the torch code is
     their reference (and runs without a backend)."""
 
     def __init__(
-        self, voxel_size_m: float, device: torch.device | str = "cpu", backend: Backend | None = None
+        self,
+        voxel_size_m: float,
+        device: torch.device | str = "cpu",
+        backend: Backend | None = None,
+        sub: int = SUB,
     ) -> None:
         self.voxel_size_m = float(voxel_size_m)
-        self.n = SUB + 1
+        self.sub = int(sub)
+        self.n = self.sub + 1
         self.sums = torch.zeros(0, self.n**3, 4, device=device)  # (V, P, 4), a view of the first V of _storage
         self._storage: torch.Tensor | None = None
         self.backend = backend
@@ -63,7 +69,7 @@ class ColorPrior:
         p = np.ascontiguousarray(points.numpy(), dtype=np.float32)
         c = np.ascontiguousarray(rgb.numpy(), dtype=np.float32)
         origin = np.ascontiguousarray(voxel_origin.numpy(), dtype=np.float32)
-        kernels.splat(p, c, *table, origin, self.voxel_size_m, SUB, self.sums.view(-1, 4).numpy())  # type: ignore[attr-defined]
+        kernels.splat(p, c, *table, origin, self.voxel_size_m, self.sub, self.sums.view(-1, 4).numpy())  # type: ignore[attr-defined]
 
     def colors(
         self, octree: VoxelOctree, voxel_origin: torch.Tensor, points: torch.Tensor
@@ -77,20 +83,25 @@ class ColorPrior:
         rgb, weight = np.empty((p.shape[0], 3), np.float32), np.empty(p.shape[0], np.float32)
         origin = np.ascontiguousarray(voxel_origin.numpy(), dtype=np.float32)
         sums = self.sums.view(-1, 4).numpy()
-        kernels.blend(p, *table, origin, self.voxel_size_m, SUB, sums, EMPTY, rgb, weight)  # type: ignore[attr-defined]
+        kernels.blend(p, *table, origin, self.voxel_size_m, self.sub, sums, EMPTY, rgb, weight)  # type: ignore[attr-defined]
         return torch.from_numpy(rgb), torch.from_numpy(weight)
 
     def shared(self) -> ColorPrior:
         """A prior reading these lattices as they are now, without copying them (for a frozen field: the live map
         keeps splatting into them, which only makes its colours newer; lattices added later are not seen)."""
-        view = ColorPrior(self.voxel_size_m, self.sums.device, self.backend)
+        view = ColorPrior(self.voxel_size_m, self.sums.device, self.backend, self.sub)
         view.sums = self.sums
         return view
 
     def load(self, sums: torch.Tensor) -> None:
-        """Take saved lattices (V, (SUB+1)^3, 4) (a checkpoint's)."""
+        """Take saved lattices (V, (sub+1)^3, 4) (a checkpoint's)."""
         if sums.shape[1:] != (self.n**3, 4):
-            raise ValueError(f"colour prior lattices of shape {tuple(sums.shape)}; expected (V, {self.n**3}, 4)")
+            saved = round(float(sums.shape[1]) ** (1.0 / 3.0)) - 1 if sums.ndim == 3 and sums.shape[2] == 4 else None
+            hint = f"; set mapping.color_prior_cells={saved} to load it" if saved is not None else ""
+            raise ValueError(
+                f"the checkpoint's colour prior lattices have shape {tuple(sums.shape)}, this configuration's "
+                f"(V, {self.n**3}, 4) ({self.sub} cells a voxel edge){hint}"
+            )
         self.sums, self._storage = sums.to(self.sums.device, torch.float32), None
 
     def to(self, device: torch.device) -> None:
@@ -114,8 +125,8 @@ class ColorPrior:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Flat indices into sums.view(-1, 4) (N,8) of the 8 lattice points around points (N,3) in voxels (N,),
         and their trilinear weights (N,8)."""
-        local = ((points - voxel_origin[voxel]) / self.voxel_size_m * SUB).clamp(0.0, float(SUB))  # (N,3)
-        base = torch.floor(local).clamp(max=SUB - 1)  # (N,3) lower lattice point
+        local = ((points - voxel_origin[voxel]) / self.voxel_size_m * self.sub).clamp(0.0, float(self.sub))  # (N,3)
+        base = torch.floor(local).clamp(max=self.sub - 1)  # (N,3) lower lattice point
         frac = local - base  # (N,3) in [0,1]
         offsets = _OFFSETS.to(points.device)
         corner = base.long()[:, None, :] + offsets[None]  # (N,8,3)
@@ -140,7 +151,7 @@ class ColorPrior:
         """`colors` in torch: the point's own voxel and, within one lattice cell of a face, the neighbours across
         it (each blending its lattice at the point moved onto its box), their weighted sums added."""
         vs = self.voxel_size_m
-        cell = vs / SUB
+        cell = vs / self.sub
         own = torch.floor(points / vs)  # (N,3) the point's own voxel cell
         inside = points - own * vs  # (N,3) metres within it
         acc = torch.zeros(points.shape[0], 4, device=points.device)

@@ -79,7 +79,9 @@ class HybridField(nn.Module):
         # Corners without a prior start as free space at the truncation distance: a zero would put a
         # surface on every corner whose projection failed.
         self.unset_prior = 1.0 if cfg.priors else 0.0
-        self.color_prior = ColorPrior(cfg.voxel_size_m, backend=backend) if cfg.color_prior else None
+        self.color_prior = (
+            ColorPrior(cfg.voxel_size_m, backend=backend, sub=cfg.color_prior_cells) if cfg.color_prior else None
+        )
         fine = cfg.fine_priors and cfg.priors
         self.fine_prior = FinePrior(cfg.voxel_size_m, cfg.truncation_m, backend=backend) if fine else None
         self.fine_residual = cfg.fine_prior_residual  # the residual also corrects the fine prior

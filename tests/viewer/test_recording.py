@@ -132,14 +132,15 @@ def test_scrubbing_shows_the_keyframes_of_that_step_in_each_browser(recorded: tu
     try:
         with sync_api.sync_playwright() as playwright:
             browser = launch(playwright)
-            pages, wires = [], []
-            for _ in range(2):
+            pages, wires, sessions = [], [], []
+            for n in (1, 2):  # one browser at a time, so that each page's session is known
                 page = browser.new_page(viewport={"width": 800, "height": 600})
                 wires.append(WireRecorder().attach(page))
                 page.goto(replay.url)
                 pages.append(page)
-            wait_until(pages[1], lambda: len(replay.sessions) == 2, what="two replay sessions")
-            first, second = (replay.sessions[c] for c in sorted(replay.sessions))
+                wait_until(page, lambda n=n: len(replay.sessions) == n, what=f"replay session {n}")
+                sessions.append(next(s for c, s in replay.sessions.items() if s not in sessions))
+            first, second = sessions
             for k in (len(rec) - 1, 2, 0, 5):  # forwards and backwards
                 first.show(k)
                 wait_until(pages[0], lambda k=k: _keyframes_shown(wires[0]) == expected[k], what=f"step {k}")
