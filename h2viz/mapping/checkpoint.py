@@ -12,6 +12,7 @@ from h2viz.config import MappingConfig
 from h2viz.errors import CheckpointError
 from h2viz.mapping import checkpoint_format
 from h2viz.mapping.backend import Backend
+from h2viz.mapping.color_views import StoredView
 from h2viz.mapping.keyframe_budget import BudgetReport
 from h2viz.mapping.mapper import Mapper
 from h2viz.mapping.rays import FrameRays
@@ -64,6 +65,7 @@ def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = N
         "keyframes": mapper.keyframes.state_dict(),
         "keyframe_frames": [_keyframe_record(r) for r in mapper.keyframe_rays],
         "thumbnails": mapper.thumbnails,
+        "color_views": [view.record() for view in mapper.color_views.views],
         "keyframe_thinning": list(mapper.keyframe_budget.thinning),
         "keyframe_budget": dataclasses.asdict(mapper.keyframe_budget.report),
         "trajectory": np.asarray(mapper.trajectory).reshape(-1, 4, 4),
@@ -139,6 +141,8 @@ def _restore(state: dict[str, Any], cfg: MappingConfig | None) -> tuple[Mapper, 
         for rays in mapper.keyframe_rays:
             mapper.observed.add(mapper.octree, rays.voxel_points(1))
     mapper.thumbnails = list(state["thumbnails"])
+    if mapper.color_views.enabled:  # saved before views were kept: renders use the colour field alone
+        mapper.color_views.replace(tuple(StoredView.from_record(r) for r in state.get("color_views", [])))
     budget = mapper.keyframe_budget
     budget.thinning = [int(t) for t in state.get("keyframe_thinning", [0] * len(mapper.keyframe_rays))]
     budget.report = BudgetReport(**state.get("keyframe_budget", {}))

@@ -14,6 +14,7 @@ import trimesh
 
 from h2viz.config import MappingConfig
 from h2viz.mapping.backend import Backend, resolve_backend
+from h2viz.mapping.color_views import ColorViews
 from h2viz.mapping.field import HybridField
 from h2viz.mapping.keyframe_budget import KeyframeBudget, keyframe_bytes
 from h2viz.mapping.keyframes import KeyframeSet
@@ -23,7 +24,7 @@ from h2viz.mapping.meshing import ChunkedMesher, export_mesh, merge_chunks
 from h2viz.mapping.octree import Allocation, VoxelOctree
 from h2viz.mapping.optim import GrowingAdam
 from h2viz.mapping.priors import PriorInitializer
-from h2viz.mapping.raycast import RenderParams, locate, render_image
+from h2viz.mapping.raycast import RenderParams, SurfaceColor, locate, render_image
 from h2viz.mapping.rays import FrameRays, RayBatch, sample_frames
 from h2viz.mapping.rendering import composite, live_samples, render_weights
 from h2viz.mapping.sampling import BandLayout, Samples, band_samples, sample_rays
@@ -70,6 +71,7 @@ class Mapper:
         self.keyframe_rays: list[FrameRays] = []
         self.thumbnails: list[np.ndarray] = []
         self.keyframe_budget = KeyframeBudget(cfg.keyframe_budget_mb)  # retires / thins keyframes past the budget
+        self.color_views = ColorViews(cfg.color_views, cfg.color_views_mb, cfg.color_views_field)  # rendered colour
         self.mesher = ChunkedMesher(cfg.voxel_size_m, cfg.mesh_resolution, cfg.chunk_voxels, self.backend)
         self.touched = np.zeros(0, dtype=bool)  # (V,) voxels allocated or observed since the last mesh job
         self.trajectory: list[np.ndarray] = []
@@ -178,6 +180,7 @@ class Mapper:
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
             self._init_priors(frame)  # project new corners into the depth image
             self._add_colors(points, rays, color_points)  # the colour prior averages the frame's pixel colours
+            self.color_views.add(frame)  # renders take colour from the nearest stored views
             self.observed.add(self.octree, points[:: max(1, len(points) // max(1, observed_points))])  # meshing
         with timer("keyframes"):
             if self.keyframes.should_insert(frame.index, alloc.observed):  # IoU / max-gap rule
@@ -440,8 +443,21 @@ class Mapper:
             trusted = torch.ones(self.octree.n_voxels, dtype=torch.bool)  # (V,) host-side: the walks read it
             trusted[torch.from_numpy(self.priors.pending)] = False
         support = self.drawable() if params.surface else None
+        color = self._view_color(K, T_world_camera) if params.surface and mode == "rgb" else None
         args = (self.field, self.octree, K, T_world_camera, height, width, mode, params, trusted)
-        return render_image(*args, support=support, backend=self.backend)
+        return render_image(*args, support=support, backend=self.backend, surface_color=color)
+
+    def _view_color(self, K: np.ndarray, T_world_camera: np.ndarray) -> SurfaceColor | None:
+        """Colour of a render's surface points from the stored views nearest its camera (None: no views)."""
+        views = self.color_views
+        if not views.enabled or not views.views:
+            return None
+
+        def color(points: torch.Tensor, field_rgb: torch.Tensor) -> torch.Tensor:
+            rgb = views.blend(points.cpu().numpy(), field_rgb.cpu().numpy(), T_world_camera, K)  # (N,3)
+            return torch.from_numpy(rgb).to(field_rgb.device)
+
+        return color
 
     def drawable(self) -> Callable[[np.ndarray], np.ndarray]:
         """Which world points (N,3) the mesher would draw a face at, (N,) bool: near observed depth (strictly in

@@ -140,6 +140,8 @@ def sdf_gradient_fd(
 
 Support = Callable[[np.ndarray], np.ndarray]
 """Which world points (N,3) lie where depth was observed, (N,) bool: a surface render draws only those."""
+SurfaceColor = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+"""Colour (N,3) of surface hit points (N,3) given the colour field's there (N,3)."""
 
 
 def surface_depth(
@@ -198,15 +200,18 @@ def shade(
     mode: str,
     params: RenderParams,
     support: Support | None = None,
+    surface_color: SurfaceColor | None = None,
 ) -> torch.Tensor:
     """Shade R rays from their samples and SDF (S,): (R,3) for rgb/normal, (R,) for depth/prior. Surface renders
-    take each ray's first observed zero crossing (and its colour there), others composite the rendering weights."""
+    take each ray's first observed zero crossing (and its colour there: the colour field's, passed through
+    `surface_color` when given), others composite the rendering weights."""
     if params.surface and mode != "prior":
         depth, hit, points = surface_depth(field, origins, dirs, samples, sdf, params, support)
         if mode == "rgb":
             rgb = torch.zeros(origins.shape[0], 3, device=origins.device)
             if points.shape[0]:
-                rgb[hit] = field.color(points)
+                color = field.color(points)  # (H,3)
+                rgb[hit] = color if surface_color is None else surface_color(points, color)
             return rgb
     else:
         weights = render_weights(samples, sdf, params.truncation_m, params.temperature)  # (S,)
@@ -239,18 +244,20 @@ def render_rays(
     trusted: torch.Tensor | None,
     support: Support | None = None,
     backend: Backend | None = None,
+    surface_color: SurfaceColor | None = None,
 ) -> torch.Tensor:
     """Render R rays (origins, dirs (R,3)), evaluating the networks only where weight can be (the backend's
     array kernels run the search; without them, `render_rays_reference`)."""
     kernels = None if backend is None else backend.array_kernels
     if kernels is None:
-        return render_rays_reference(field, octree, origins, dirs, mode, params, trusted, support, backend)
+        args = (field, octree, origins, dirs, mode, params, trusted, support, backend, surface_color)
+        return render_rays_reference(*args)
     if mode == "prior":
         samples, sdf = kernels.search.prior_samples(octree, field, origins, dirs, params.t_far, params.search())
     else:
         search = kernels.search.weighted_samples
         samples, sdf = search(field, octree, origins, dirs, params.t_far, trusted, params.search())
-    return shade(field, octree, origins, dirs, samples, sdf, mode, params, support)
+    return shade(field, octree, origins, dirs, samples, sdf, mode, params, support, surface_color)
 
 
 @torch.no_grad()
@@ -264,6 +271,7 @@ def render_rays_reference(
     trusted: torch.Tensor | None = None,
     support: Support | None = None,
     backend: Backend | None = None,
+    surface_color: SurfaceColor | None = None,
 ) -> torch.Tensor:
     """Render R rays from every sample of every allocated voxel up to t_far (band-filtered by the prior)."""
     t_far = torch.full((origins.shape[0],), params.t_far, device=origins.device)
@@ -273,7 +281,7 @@ def render_rays_reference(
         keep = prior.abs() < params.band
         samples, prior = samples.select(keep), prior[keep]
     sdf = prior if mode == "prior" else field.sdf(samples.points, samples.voxel)
-    return shade(field, octree, origins, dirs, samples, sdf, mode, params, support)
+    return shade(field, octree, origins, dirs, samples, sdf, mode, params, support, surface_color)
 
 
 def render_image(
@@ -290,11 +298,13 @@ def render_image(
     reference: bool = False,
     support: Support | None = None,
     backend: Backend | None = None,
+    surface_color: SurfaceColor | None = None,
 ) -> np.ndarray:
     """(H,W,3) float32 rgb in [0,1] / normals in [-1,1], or (H,W) float32 depth in metres (0 = nothing).
     trusted (V,) bool: voxels whose 8 corner priors are all set (None: priors disabled, search the SDF);
     support: where surface renders may draw (None: everywhere); backend: its kernels walk the voxels and search
-    the lattice (None: the reference render)."""
+    the lattice (None: the reference render); surface_color: the colour of surface renders' hit points from the
+    colour field's (None: the colour field's, h2viz.mapping.color_views)."""
     if mode not in MODES:
         raise ValueError(f"render mode '{mode}' is not one of {', '.join(MODES)}")
     dev = field.priors.device
@@ -303,9 +313,9 @@ def render_image(
     if octree.n_voxels == 0:
         return np.zeros((height, width, *channels), dtype=np.float32)
     fn = render_rays_reference if reference else render_rays
+    args = (mode, params, trusted, support, backend, surface_color)
     parts = [
-        fn(field, octree, origins[i : i + chunk], dirs[i : i + chunk], mode, params, trusted, support, backend)
-        for i in range(0, origins.shape[0], chunk)
+        fn(field, octree, origins[i : i + chunk], dirs[i : i + chunk], *args) for i in range(0, origins.shape[0], chunk)
     ]
     return torch.cat(parts).float().cpu().numpy().reshape(height, width, *channels)
 

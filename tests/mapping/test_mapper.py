@@ -144,6 +144,10 @@ def test_checkpoint_round_trip_reproduces_renders_and_continues(tmp_path: Path) 
     a = mapper.render(f.K, f.T_world_camera, f.height, f.width, "depth")
     b = again.render(f.K, f.T_world_camera, f.height, f.width, "depth")
     np.testing.assert_allclose(a, b, atol=1e-6)
+    assert [v.index for v in again.color_views.views] == [v.index for v in mapper.color_views.views] == [0, 1, 2, 3]
+    rgb_a = mapper.render(f.K, f.T_world_camera, f.height, f.width, "rgb")
+    rgb_b = again.render(f.K, f.T_world_camera, f.height, f.width, "rgb")
+    assert np.abs(rgb_a - rgb_b).mean() < 0.01  # the stored views' colour went through JPEG
     assert again.octree.n_voxels == mapper.octree.n_voxels and len(again.keyframes) == len(mapper.keyframes)
     np.testing.assert_array_equal(again.observed.words, mapper.observed.words)  # meshing's observed cells
     s1 = mapper.integrate(scene.frame(4, poses[4]))

@@ -33,8 +33,9 @@ def mapped(scene: Scene, poses: list[np.ndarray], **cfg: object) -> Mapper:
 def exhaustive(mapper: Mapper, T: np.ndarray, mode: str) -> np.ndarray:
     params = RenderParams.from_config(mapper.cfg, mapper.max_depth_m)
     support = mapper.drawable() if params.surface else None  # the observed space a surface render draws in
+    color = mapper._view_color(intrinsics(W, H), T) if params.surface and mode == "rgb" else None  # same colour
     args = (mapper.field, mapper.octree, intrinsics(W, H), T, H, W, mode, params)
-    return render_image_reference(*args, support=support)
+    return render_image_reference(*args, support=support, surface_color=color)
 
 
 def true_depth(scene: Scene, T: np.ndarray) -> np.ndarray:
