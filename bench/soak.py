@@ -134,6 +134,7 @@ def child(args: argparse.Namespace) -> None:
                 "frame": snap.frames_done,
                 "rss_mb": rss_mb(),
                 "keyframe_mb": snap.stats[-1].keyframe_mb,
+                "view_mb": snap.stats[-1].view_mb,
                 "keyframes": snap.stats[-1].n_keyframes,
                 "voxels": snap.stats[-1].n_voxels,
                 "frame_s": float(np.median(times)),
@@ -308,12 +309,13 @@ def report(args: argparse.Namespace, runs: dict[str, list[dict[str, Any]]], summ
         + f". Samples every {args.sample_every} frames; plot: {png.name}."
     )
     lines.append("")
-    header = ["run", "frame", "RSS MB", "keyframes MB", "keyframes", "voxels", "surface m²", "frame s"]
+    header = ["run", "frame", "RSS MB", "keyframes MB", "views MB", "keyframes", "voxels", "surface m²", "frame s"]
     rows = []
     for name, samples in runs.items():
         step = max(1, len(samples) // 10)
         for s in samples[::step] + ([samples[-1]] if (len(samples) - 1) % step else []):
-            rows.append([name, str(s["frame"]), fmt(s["rss_mb"], 0), fmt(s["keyframe_mb"], 1), str(s["keyframes"]),
+            rows.append([name, str(s["frame"]), fmt(s["rss_mb"], 0), fmt(s["keyframe_mb"], 1), fmt(s["view_mb"], 1),
+                         str(s["keyframes"]),
                          str(s["voxels"]), fmt(s["surface_m2"], 1), fmt(s["frame_s"], 3)])  # fmt: skip
     lines += [markdown_table(header, rows), ""]
     start, window = min(300, total // 3), max(total // 10, 2 * args.sample_every)

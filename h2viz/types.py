@@ -110,6 +110,8 @@ class FrameStats:
     """Seconds per stage: allocation, keyframes, sampling, forward, backward, optimiser."""
     keyframe_mb: float = 0.0
     """Memory of the keyframes after this frame (rays, voxel lists, thumbnails), MB."""
+    view_mb: float = 0.0
+    """Memory of the stored colour views after this frame (h2viz.mapping.color_views), MB."""
 
 
 @dataclass(frozen=True)

@@ -23,8 +23,9 @@ from h2viz.types import RgbdFrame
 
 ROTATION_M = 0.5
 """Metres of camera distance that a full turn of viewing direction (1 - cos) counts as, when ranking views."""
-DUPLICATE = 0.005
-"""Views closer than this (in the ranking's metres) to a stored one add nothing and are not stored."""
+MIN_SPACING = 0.02
+"""A frame closer than this (in the ranking's metres) to a stored view is not stored: it adds little, and a camera
+that goes over the same places again (or stands still) does not fill the store with copies."""
 DEPTH_TOL_M = 0.03
 """A view sees a point when its depth at the point's pixel is within max(this, DEPTH_TOL_REL x depth)..."""
 DEPTH_TOL_REL = 0.02
@@ -134,12 +135,12 @@ class ColorViews:
         return sum(v.nbytes for v in self.views)
 
     def add(self, frame: RgbdFrame) -> None:
-        """Keep `frame`'s colour (unless a stored view is as good as the same camera), then retire the most
+        """Keep `frame`'s colour (unless a stored view is within MIN_SPACING of its camera), then retire the most
         redundant views (those nearest another) until the store fits its budget."""
         if not self.enabled:
             return
         T = frame.T_world_camera
-        if any(view_distance(T, v.T_world_camera) < DUPLICATE for v in self.views):
+        if any(view_distance(T, v.T_world_camera) < MIN_SPACING for v in self.views):
             return
         self.replace((*self.views, StoredView.of(frame.index, T, frame.K, frame.rgb, frame.depth_m)))
 

@@ -205,6 +205,7 @@ class Mapper:
             n_voxels=self.octree.n_voxels,
             n_keyframes=len(self.keyframes),
             keyframe_mb=self.keyframe_mb,
+            view_mb=self.color_views.nbytes / 1e6,
             losses=losses,
             timings=timer.seconds,
         )

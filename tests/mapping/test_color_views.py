@@ -98,14 +98,14 @@ def test_a_coarser_render_samples_the_half_resolution_copy() -> None:
 
 
 def test_the_budget_retires_the_most_redundant_view() -> None:
-    frames = [plane_frame(i, pose(x)) for i, x in enumerate((0.0, 1.0, 1.02, 2.0))]
+    frames = [plane_frame(i, pose(x)) for i, x in enumerate((0.0, 1.0, 1.05, 2.0))]
     size = StoredView.of(0, frames[0].T_world_camera, K, frames[0].rgb, frames[0].depth_m).nbytes
     views = ColorViews(n_blend=2, budget_mb=3.5 * size / 2**20, field_weight=0.0)
     for frame in frames:
         views.add(frame)
-    assert [v.index for v in views.views] == [0, 2, 3]  # 1 and 2 were 2 cm apart: the older one went
+    assert [v.index for v in views.views] == [0, 2, 3]  # 1 and 2 were 5 cm apart: the older one went
     assert views.nbytes <= views.budget_bytes
-    views.add(plane_frame(9, pose(2.001)))  # within DUPLICATE of view 3: nothing to add
+    views.add(plane_frame(9, pose(2.01)))  # within MIN_SPACING of view 3: nothing to add
     assert [v.index for v in views.views] == [0, 2, 3]
     assert [v.index for v in views.nearest(pose(1.9))] == [3, 2]
 
