@@ -165,3 +165,25 @@ def test_a_realtime_run_autosaves_and_resuming_it_goes_on_after_its_last_integra
     assert resumed[:n] == mapped and resumed[n:] and set(resumed[n:]) <= {60, 70}  # only frames after the last
     assert stats_of(out)["realtime"]["integrated"] == len(resumed) - n
     assert load_checkpoint(out / AUTOSAVE_NAME)[1]["last_index"] == resumed[-1]
+
+
+def test_ctrl_c_during_a_realtime_run_keeps_and_saves_the_map(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    add_frame = Mapper.add_frame
+
+    def interrupted(self: Mapper, frame: object, *args: object) -> object:
+        if frame.index == 30:  # type: ignore[attr-defined]
+            raise KeyboardInterrupt
+        return add_frame(self, frame, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Mapper, "add_frame", interrupted)
+    out = tmp_path / "run"
+    assert main([*map_args(out, 6, every=50), "--realtime"]) == 0
+    stats = stats_of(out)
+    mapped = [f["index"] for f in stats["frames"]]
+    assert (
+        mapped
+        and max(mapped) < 30
+        and stats["errors"] == [f"interrupted after frame {mapped[-1]}; the map so far is saved"]
+    )
+    assert load_checkpoint(out / AUTOSAVE_NAME)[1]["last_index"] == mapped[-1]  # saved when the stream ended
+    assert load_checkpoint(out / "checkpoint.pt")[0].frames_done == len(mapped)
