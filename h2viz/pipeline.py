@@ -159,7 +159,7 @@ def run_map(
     anytime = None
     if realtime:
         bar = tqdm(total=len(source), disable=not progress, unit="frame", dynamic_ncols=True)
-        new_stats, anytime = _map_anytime(source, mapper, cfg, eval_frames, last_index, bar)
+        new_stats, anytime = _map_anytime(source, mapper, cfg, eval_frames, (last_index, stats), autosave, errors, bar)
         bar.close()
         stats.extend(new_stats)
         last_index = stats[-1].index if stats else last_index
@@ -260,15 +260,26 @@ def _save_outputs(mapper: Mapper, out: Path, last_index: int, stats: list[FrameS
         save_checkpoint(mapper, out / "checkpoint.pt", run_state(last_index, stats))
     except CheckpointError as e:
         errors.append(f"{e}; the last autosave in {out} is kept")
+
+
 def _map_anytime(
-    source: FrameSource, mapper: Mapper, cfg: Config, eval_frames: EvalFrames, last_index: int, bar: tqdm
+    source: FrameSource,
+    mapper: Mapper,
+    cfg: Config,
+    eval_frames: EvalFrames,
+    earlier: tuple[int, list[FrameStats]],
+    autosave: Autosaver,
+    errors: list[str],
+    bar: tqdm,
 ) -> tuple[list[FrameStats], AnytimeRun]:
     """The source played at its own rate: every frame integrated as it arrives, optimisation between frames, then
-    until the loss plateaus (anytime.*)."""
+    until the loss plateaus (anytime.*), autosaving on the way. A resumed run (`earlier`: its last frame's index and
+    its frames' stats) plays the stream from the frame after its last. Ctrl-C ends the run, keeping the map."""
+    last_index, stats = earlier
     settings = WorkerSettings(realtime=True, stride=max(1, cfg.source.stride))
-    feed = FrameFeed(source, settings, cfg.source.max_frames, cfg.anytime.backlog_frames)
-    run = AnytimeRun(mapper, feed, cfg.anytime)
-    position = 0
+    position = _read_mapped(source, last_index, eval_frames)
+    feed = FrameFeed(source, settings, cfg.source.max_frames, cfg.anytime.backlog_frames, start_after=last_index)
+    run = AnytimeRun(mapper, feed, cfg.anytime, autosave=autosave, earlier=stats)
 
     def arrived(frame: RgbdFrame) -> bool:
         nonlocal position
@@ -280,11 +291,29 @@ def _map_anytime(
 
     feed.start()
     try:
-        run.stream(arrived)
-    finally:
-        feed.stop()
-    run.sharpen()
+        try:
+            run.stream(arrived)
+        finally:
+            feed.stop()
+        run.sharpen()
+    except KeyboardInterrupt:
+        last = run.stats[-1].index if run.stats else last_index
+        errors.append(f"interrupted after frame {last}; the map so far is saved")
+    errors.extend(run.errors)
     return run.stats, run
+
+
+def _read_mapped(source: FrameSource, last_index: int, eval_frames: EvalFrames) -> int:
+    """Read the frames a resumed real-time run mapped (up to `last_index`) at once, for the evaluation only, so that
+    the stream need not play them; how many of the source's selected frames they are."""
+    selected = source.selected()
+    for n, (position, key) in enumerate(selected):
+        if position > last_index:
+            return n
+        frame = source.get(position, key)
+        if frame is not None:
+            eval_frames.add(n, frame)
+    return len(selected)
 
 
 def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:

@@ -1,6 +1,6 @@
-"""`h2viz map` keeps its work: autosaves on schedule, resumes a run folder from its newest checkpoint with the stats
-appended, and ends a stream cleanly (map kept, saved, message given) when the source fails mid-stream, the mapper
-fails, or the output disk is full."""
+"""`h2viz map` keeps its work: autosaves on schedule (real-time runs too, and at the end of their stream), resumes a
+run folder from its newest checkpoint with the stats appended, and ends a stream cleanly (map kept, saved, message
+given) when the source fails mid-stream, the mapper fails, or the output disk is full."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from h2viz.cli import main
 from h2viz.config import AutosaveConfig
 from h2viz.errors import CheckpointError
 from h2viz.mapping import checkpoint_format
-from h2viz.mapping.autosave import Autosaver, find_checkpoint
+from h2viz.mapping.autosave import AUTOSAVE_NAME, Autosaver, find_checkpoint
 from h2viz.mapping.checkpoint import load_checkpoint
 from h2viz.mapping.mapper import Mapper
 from h2viz.sources.synthetic import SyntheticSource
@@ -135,3 +135,55 @@ def test_a_full_disk_keeps_mapping_and_the_previous_autosave(tmp_path: Path, mon
     assert any("checkpoint.pt" in e and "the last autosave" in e for e in stats["errors"])
     assert not (out / "checkpoint.pt").exists() and not list(out.glob("*.tmp"))
     assert load_checkpoint(out / "autosave.pt")[1]["last_index"] == 10
+
+
+def test_a_realtime_run_autosaves_and_resuming_it_goes_on_after_its_last_integrated_frame(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    write, writes = checkpoint_format.write, []
+
+    def noting(state: dict, path: Path) -> None:
+        writes.append((path.name, state["frames_done"], state["extra"]["last_index"]))
+        write(state, path)
+
+    monkeypatch.setattr(checkpoint_format, "write", noting)
+    out = tmp_path / "run"
+    realtime = ["--realtime", "--set", "anytime.sharpen_max_s=0"]
+    assert main([*map_args(out, 6), *realtime]) == 0
+    mapped = [f["index"] for f in stats_of(out)["frames"]]
+    n = len(mapped)
+    assert n == stats_of(out)["realtime"]["integrated"] >= 4  # a frame the reader was late for may be passed over
+    autosaves = [(frames, last) for name, frames, last in writes if name == AUTOSAVE_NAME]
+    assert [frames for frames, _ in autosaves] == [*range(2, n + 1, 2), *([n] if n % 2 else [])]  # and at the end
+    assert autosaves[-1] == (n, mapped[-1])
+    mapper, extra = load_checkpoint(out / AUTOSAVE_NAME)
+    assert mapper.frames_done == n and [s["index"] for s in extra["stats"]] == mapped
+
+    (out / "checkpoint.pt").unlink()  # as after a crash: the autosave is the newest checkpoint
+    assert main(["map", "--resume", str(out), "--frames", "8", "--stride", "10", *realtime, *FAST]) == 0
+    resumed = [f["index"] for f in stats_of(out)["frames"]]
+    assert resumed[:n] == mapped and resumed[n:] and set(resumed[n:]) <= {60, 70}  # only frames after the last
+    assert stats_of(out)["realtime"]["integrated"] == len(resumed) - n
+    assert load_checkpoint(out / AUTOSAVE_NAME)[1]["last_index"] == resumed[-1]
+
+
+def test_ctrl_c_during_a_realtime_run_keeps_and_saves_the_map(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    add_frame = Mapper.add_frame
+
+    def interrupted(self: Mapper, frame: object, *args: object) -> object:
+        if frame.index == 30:  # type: ignore[attr-defined]
+            raise KeyboardInterrupt
+        return add_frame(self, frame, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Mapper, "add_frame", interrupted)
+    out = tmp_path / "run"
+    assert main([*map_args(out, 6, every=50), "--realtime"]) == 0
+    stats = stats_of(out)
+    mapped = [f["index"] for f in stats["frames"]]
+    assert (
+        mapped
+        and max(mapped) < 30
+        and stats["errors"] == [f"interrupted after frame {mapped[-1]}; the map so far is saved"]
+    )
+    assert load_checkpoint(out / AUTOSAVE_NAME)[1]["last_index"] == mapped[-1]  # saved when the stream ended
+    assert load_checkpoint(out / "checkpoint.pt")[0].frames_done == len(mapped)

@@ -1,6 +1,6 @@
-"""The dashboard's worker keeps its work: it autosaves on schedule, autosaves before reporting a failed frame or a
-failed mesh update with a message that says what happened and what goes on, resumes a run folder after its last
-frame, and never overwrites an earlier run's autosave."""
+"""The dashboard's worker keeps its work: it autosaves on schedule (in real-time mode too, and when the stream ends),
+autosaves before reporting a failed frame or a failed mesh update with a message that says what happened and what
+goes on, resumes a run folder after its last frame, and never overwrites an earlier run's autosave."""
 
 from __future__ import annotations
 
@@ -12,11 +12,12 @@ import pytest
 
 from h2viz.config import Config
 from h2viz.errors import H2vizError
+from h2viz.mapping import checkpoint_format
 from h2viz.mapping.autosave import AUTOSAVE_NAME
 from h2viz.mapping.checkpoint import load_checkpoint
 from h2viz.mapping.mesh_job import MeshJob
 from h2viz.viewer import server
-from h2viz.worker import MappingWorker
+from h2viz.worker import END, FrameFeed, MappingWorker, WorkerSettings
 from tests.viewer.fakes import BoxRoomSource, intrinsics, recording_mapper, room_pose, tiny_mapping_config
 
 
@@ -98,9 +99,11 @@ def test_the_dashboard_resumes_a_run_folder_after_its_last_frame_and_keeps_earli
     assert [s.index for s in snap.stats] == list(range(8)) and snap.frames_done == 8 and not resumed.errors
     kept = sorted(tmp_path.glob("autosave_*.pt"))
     assert len(kept) == 1 and not (tmp_path / AUTOSAVE_NAME).exists()  # renamed before the fresh run writes one
+    assert fresh.resume_offer is not None and fresh.resume_offer.path == kept[0]  # the dashboard offers to resume it
     assert fresh.notices == [
-        f"An earlier run's autosave is kept as {kept[0]}. To continue that run instead, restart with "
-        f"`h2viz view --resume {kept[0]}`."
+        f"An earlier run's autosave is kept as {kept[0]}; this run never overwrites it.",
+        f"The run folder holds an earlier run's checkpoint, {kept[0]} (6 frames). This run starts fresh; press "
+        '"Resume earlier run" in the Mapping tab to continue that one instead.',
     ]
     assert load_checkpoint(kept[0])[1]["last_index"] == 5  # the resumed run's last autosave, after frames 3-5
 
@@ -139,3 +142,43 @@ def test_a_failed_render_or_export_is_reported_after_an_autosave_and_mapping_goe
     assert worker.errors[1].startswith("a mesh export failed (OSError: [Errno 28] No space); mapping goes on")
     assert len(worker.errors) == 2  # autosaved once: the export came within a minute of the render
     assert load_checkpoint(tmp_path / AUTOSAVE_NAME)[0].frames_done == 4
+
+
+def test_the_worker_autosaves_a_realtime_run_and_resumes_it_after_its_last_integrated_frame(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    write, autosaves = checkpoint_format.write, []
+
+    def noting(state: dict, path: Path) -> None:
+        autosaves.append((state["frames_done"], state["extra"]["last_index"]))
+        write(state, path)
+
+    monkeypatch.setattr(checkpoint_format, "write", noting)
+    cfg = config(tmp_path, every=2)
+    cfg.source.realtime, cfg.anytime.sharpen_max_s = True, 0.0
+    first = run(MappingWorker(BoxRoomSource(n=5), recording_mapper(cfg.mapping), cfg, autosave_dir=tmp_path))
+    mapped = [s.index for s in first.slot.get()[1].stats]
+    n = len(mapped)
+    assert n >= 3 and autosaves == [*((k, mapped[k - 1]) for k in range(2, n + 1, 2)), *([(n, mapped[-1])] * (n % 2))]
+    assert load_checkpoint(tmp_path / AUTOSAVE_NAME)[0].frames_done == n  # the stream's end was autosaved
+
+    resumed = run(server.build_worker(cfg, resume=tmp_path, source=BoxRoomSource(n=8)))
+    indices = [s.index for s in resumed.slot.get()[1].stats]
+    assert indices[:n] == mapped and indices[n:] and min(indices[n:]) > mapped[-1] and not resumed.errors
+
+
+def test_a_feed_passes_over_the_frames_a_resumed_run_mapped_without_reading_them() -> None:
+    class Counting(BoxRoomSource):
+        loaded: list[int] = []
+
+        def load(self, position: int, key: Any) -> Any:
+            self.loaded.append(position)
+            return super().load(position, key)
+
+    source = Counting(n=9)
+    feed = FrameFeed(source, WorkerSettings(stride=2), 0, start_after=4)
+    assert feed.total() == 5 and feed.read == 3  # 0, 2, 4 passed over, 6 and 8 to come
+    feed.start()
+    frames = [feed.take(10.0) for _ in range(3)]
+    feed.stop()
+    assert [f.index for f in frames[:2]] == [6, 8] and frames[2] is END and source.loaded == [6, 8]

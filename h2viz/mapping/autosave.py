@@ -1,6 +1,6 @@
 """Autosave of a run: the mapping state written to <run folder>/autosave.pt every N frames or M seconds (atomically,
-so a process killed mid-write leaves the previous autosave intact), and finding the newest checkpoint of a run
-folder to resume from."""
+so a process killed mid-write leaves the previous autosave intact), finding the newest checkpoint of a run
+folder to resume from, and the dashboard's offer to resume the earlier run a folder holds."""
 
 from __future__ import annotations
 
@@ -66,6 +66,54 @@ def keep_earlier_autosave(folder: str | Path) -> Path | None:
     return kept
 
 
+@dataclasses.dataclass(frozen=True)
+class ResumeOffer:
+    """An earlier run's checkpoint in the run folder, which the dashboard offers to continue."""
+
+    path: Path
+    frames: int  # frames that run mapped
+    last_index: int  # the index of its last mapped frame: mapping goes on after it
+    saved_at: float  # the file's modification time (time.time())
+
+    def label(self) -> str:
+        """The resume button's text."""
+        saved = time.strftime("%Y-%m-%d %H:%M", time.localtime(self.saved_at))
+        return f"Resume earlier run ({self.frames} frames, saved {saved})"
+
+    def notice(self) -> str:
+        """What a browser that connects is told while the offer stands."""
+        return (
+            f"The run folder holds an earlier run's checkpoint, {self.path} ({self.frames} frames). This run starts "
+            'fresh; press "Resume earlier run" in the Mapping tab to continue that one instead.'
+        )
+
+
+def earlier_run(folder: str | Path) -> tuple[ResumeOffer | None, str | None]:
+    """The newest checkpoint in `folder` as a ResumeOffer (None when it holds none, or one of no frames); or, when that
+    checkpoint cannot be resumed (damaged, of another format, without the frame it ended at), None and the message
+    that says so."""
+    from h2viz.mapping.checkpoint import peek_checkpoint
+
+    try:
+        path = find_checkpoint(folder)
+    except CheckpointError:
+        return None, None
+    try:
+        frames, extra = peek_checkpoint(path)
+        last_index, _ = run_progress(path, extra)
+        if frames > 0 and "last_index" not in extra:
+            raise CheckpointError(f"{path} does not say which frame its run ended at, so it cannot be continued")
+    except CheckpointError as e:
+        log.warning("the earlier run cannot be resumed: %s", e)
+        return (
+            None,
+            f"An earlier run's checkpoint cannot be resumed: {e}. This run starts fresh; the file is left as it is.",
+        )
+    if frames == 0:  # nothing to continue
+        return None, None
+    return ResumeOffer(path, frames, last_index, path.stat().st_mtime), None
+
+
 class Autosaver:
     """Writes the run folder's autosave.pt when `autosave.every_frames` frames or `autosave.every_s` seconds have
     passed since the last one. A failed write (disk full, folder gone) is logged and reported, never raised: the
@@ -91,6 +139,14 @@ class Autosaver:
     @property
     def enabled(self) -> bool:
         return self.cfg.every_frames > 0 or self.cfg.every_s > 0
+
+    def restart(self, frames_done: int) -> None:
+        """Count from `frames_done` mapped frames and from now (the worker took over another run's map)."""
+        self._last_frames, self._last_t = frames_done, self._clock()
+
+    def behind(self, frames_done: int) -> bool:
+        """Frames were mapped since the last autosave (or since the start): saving now would keep them."""
+        return self.enabled and frames_done > self._last_frames
 
     def due(self, frames_done: int) -> bool:
         """Whether an autosave is due after `frames_done` mapped frames."""

@@ -80,15 +80,7 @@ def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = N
 def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mapper, dict[str, Any]]:
     """Rebuild a Mapper from a checkpoint; returns it and the checkpoint's `extra` dict."""
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} does not exist; pass the checkpoint.pt of an earlier run")
-    state = checkpoint_format.read(path)
-    version = state.get("format_version")
-    if version != FORMAT_VERSION:
-        raise CheckpointError(f"{path} has checkpoint format {version}, expected {FORMAT_VERSION}; map the run again")
-    missing = [key for key in REQUIRED_KEYS if key not in state]
-    if missing:
-        raise CheckpointError(f"{path} is incomplete: it lacks {', '.join(missing)}; resume from another checkpoint")
+    state = _read_state(path)
     try:
         return _restore(state, cfg)
     except CheckpointError as e:
@@ -97,6 +89,30 @@ def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mappe
         raise CheckpointError(
             f"{path} is damaged or inconsistent ({type(e).__name__}: {e}); resume from another checkpoint"
         ) from None
+
+
+def peek_checkpoint(path: Path) -> tuple[int, dict[str, Any]]:
+    """A checkpoint's frames mapped and its `extra`, checked as load_checkpoint checks them but without rebuilding
+    the map (its tensors stay in the file): what the dashboard's offer to resume an earlier run shows."""
+    state = _read_state(Path(path), mmap=True)
+    try:
+        return int(state["frames_done"]), dict(state.get("extra") or {})
+    except (TypeError, ValueError) as e:
+        raise CheckpointError(f"{path} is damaged ({type(e).__name__}: {e}); resume from another checkpoint") from None
+
+
+def _read_state(path: Path, mmap: bool = False) -> dict[str, Any]:
+    """A checkpoint's decoded state, of this format and with every part a map needs, or a CheckpointError."""
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist; pass the checkpoint.pt of an earlier run")
+    state = checkpoint_format.read(path, mmap)
+    version = state.get("format_version")
+    if version != FORMAT_VERSION:
+        raise CheckpointError(f"{path} has checkpoint format {version}, expected {FORMAT_VERSION}; map the run again")
+    missing = [key for key in REQUIRED_KEYS if key not in state]
+    if missing:
+        raise CheckpointError(f"{path} is incomplete: it lacks {', '.join(missing)}; resume from another checkpoint")
+    return state
 
 
 def _restore(state: dict[str, Any], cfg: MappingConfig | None) -> tuple[Mapper, dict[str, Any]]:

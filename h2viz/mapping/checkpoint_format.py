@@ -66,15 +66,16 @@ def write(state: dict[str, Any], path: Path) -> None:
         raise CheckpointError(f"cannot write checkpoint {path}: {e}; check the folder is writable and has room") from e
 
 
-def read(path: Path) -> dict[str, Any]:
-    """Load a checkpoint without running any code it carries; a file that would need code is refused."""
-    return decode(_load(Path(path)))
+def read(path: Path, mmap: bool = False) -> dict[str, Any]:
+    """Load a checkpoint without running any code it carries; a file that would need code is refused. `mmap`: its
+    tensors are mapped from the file, read only when used (a quick look at its plain data)."""
+    return decode(_load(Path(path), mmap))
 
 
-def _load(path: Path) -> dict[str, Any]:
+def _load(path: Path, mmap: bool = False) -> dict[str, Any]:
     """torch.load with weights_only=True (and the safe globals in effect), as a dict, or a CheckpointError."""
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
+        data = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
     except Exception as e:  # noqa: BLE001 - any failure means the file is unusable as it is
         raise _refusal(path, e) from None
     if not isinstance(data, dict):

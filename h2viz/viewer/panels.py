@@ -1,10 +1,12 @@
 """The dashboard's control panel: playback, layer toggles, novel-view mode, export and live settings
-(tabs Mapping / View / Export), plus the status panels. Every control turns into a Command for the
-mapping worker or a change to a layer; shared by all browsers (a late joiner sees the same state)."""
+(tabs Mapping / View / Export), plus the status panels and, when the run folder holds an earlier run, the offer to
+resume it. Every control turns into a Command for the mapping worker or a change to a layer; shared by all
+browsers (a late joiner sees the same state)."""
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -71,7 +73,10 @@ class Panels:
         self.downloads = 0
         gui = server.gui
         tabs = gui.add_tab_group()
+        self._offer: viser.GuiFolderHandle | None = None
+        self._offer_lock = threading.Lock()
         with tabs.add_tab("Mapping", icon=viser.Icon.PLAYER_PLAY):
+            self._build_offer(gui)
             self._build_playback(gui)
             self.status = StatusPanels(gui)
         with tabs.add_tab("View", icon=viser.Icon.EYE):
@@ -90,22 +95,60 @@ class Panels:
         s = self.worker.settings
         self.pause = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, hint="Stop taking new frames")
         self.resume = gui.add_button("Resume", icon=viser.Icon.PLAYER_PLAY, disabled=True)
-        self.step = gui.add_button(
-            "Step one frame", icon=viser.Icon.PLAYER_TRACK_NEXT, hint="Map exactly one frame"
-        )
+        self.step = gui.add_button("Step one frame", icon=viser.Icon.PLAYER_TRACK_NEXT, hint="Map exactly one frame")
         self.realtime = gui.add_checkbox(
             "Real-time",
             s.realtime,
             hint="Play at the stream's rate: integrate every frame, optimise between frames and after the end",
         )
-        self.stride = gui.add_number(
-            "Stride", int(s.stride), min=1, max=100, step=1, hint="Use every k-th frame"
-        )
+        self.stride = gui.add_number("Stride", int(s.stride), min=1, max=100, step=1, hint="Use every k-th frame")
         self.pause.on_click(lambda e: self._command(e, "pause"))
         self.resume.on_click(lambda e: self._command(e, "resume"))
         self.step.on_click(lambda e: self._command(e, "step"))
         self.realtime.on_update(lambda e: self._command(e, "set", realtime=self.realtime.value))
         self.stride.on_update(lambda e: self._command(e, "set", stride=int(self.stride.value)))
+
+    def _build_offer(self, gui: viser.GuiApi) -> None:
+        """The "Earlier run" folder: resume the run folder's earlier run, or dismiss the offer (nothing without one)."""
+        offer = self.worker.resume_offer
+        if offer is None:
+            return
+        with gui.add_folder("Earlier run") as self._offer:
+            self.resume_earlier = gui.add_button(
+                offer.label(),
+                icon=viser.Icon.HISTORY,
+                hint=f"Continue {offer.path} after its frame {offer.last_index} instead of this fresh run, whose map "
+                "it replaces",
+            )
+            self.dismiss_earlier = gui.add_button("Dismiss", icon=viser.Icon.X, hint="Go on with this fresh run")
+        self.resume_earlier.on_click(self._resume_earlier)
+        self.dismiss_earlier.on_click(lambda _: self._drop_offer(dismiss=True))
+
+    def _resume_earlier(self, event: Any) -> None:
+        """Ask the worker to take over the offered run; say what happened (or why not) and drop the offer."""
+        offer = self.worker.resume_offer
+        if offer is None:
+            self._drop_offer()
+            return
+        self.resume_earlier.disabled = self.dismiss_earlier.disabled = True
+        try:
+            message = self.worker.submit("resume_run", path=str(offer.path)).result(timeout=COMMAND_TIMEOUT_S)
+        except Exception as e:
+            log.warning("resuming %s failed: %s", offer.path, e)
+            notify(event, "Cannot resume the earlier run", str(e), error=True)
+        else:
+            notify(event, "Earlier run resumed", str(message))
+        finally:
+            self._drop_offer()
+
+    def _drop_offer(self, dismiss: bool = False) -> None:
+        """Remove the "Earlier run" folder (once, whichever thread gets here first)."""
+        if dismiss:
+            self.worker.dismiss_resume_offer()
+        with self._offer_lock:
+            folder, self._offer = self._offer, None
+        if folder is not None:
+            folder.remove()
 
     def _build_layers(self, gui: viser.GuiApi) -> None:
         build_layer_controls(gui, self.layers)
@@ -126,9 +169,7 @@ class Panels:
         with gui.add_folder("Export"):
             ply = gui.add_button("Download mesh (PLY)", icon=viser.Icon.DOWNLOAD)
             glb = gui.add_button("Download mesh (GLB)", icon=viser.Icon.DOWNLOAD)
-            save = gui.add_button(
-                "Save checkpoint", icon=viser.Icon.DEVICE_FLOPPY, hint=f"Written to {self.out_dir}/"
-            )
+            save = gui.add_button("Save checkpoint", icon=viser.Icon.DEVICE_FLOPPY, hint=f"Written to {self.out_dir}/")
             refine = gui.add_button(
                 f"Refine map ({REFINE_STEPS} steps)",
                 icon=viser.Icon.SPARKLES,
@@ -226,9 +267,7 @@ class Panels:
                 data = self.worker.submit("export", format=what).result(timeout=COMMAND_TIMEOUT_S)
                 name = f"mesh.{what}"
             self.downloads += 1
-            client.send_file_download(
-                f"h2viz_{time.strftime('%Y%m%d-%H%M%S')}_{name}", data, save_immediately=True
-            )
+            client.send_file_download(f"h2viz_{time.strftime('%Y%m%d-%H%M%S')}_{name}", data, save_immediately=True)
         except Exception as e:
             log.warning("download of %s failed: %s", what, e)
             notify(event, "Download failed", str(e), error=True)
@@ -243,9 +282,10 @@ class Panels:
 
     # -- refresh -------------------------------------------------------------------------------
     def update(self, snap: MapSnapshot) -> None:
+        if self._offer is not None and self.worker.resume_offer is None:  # taken or dismissed elsewhere
+            self._drop_offer()
         self.pause.disabled = snap.paused or snap.finished
         self.resume.disabled = not snap.paused or snap.finished
         self.step.disabled = snap.finished
         self.status.update(snap)
         self.comforts.update(snap)
-

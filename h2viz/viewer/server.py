@@ -176,8 +176,9 @@ def run_folder(cfg: Config) -> Path:
 def build_worker(cfg: Config, resume: Path | None = None, source: FrameSource | None = None) -> MappingWorker:
     """Open the configured source (or take `source`) and a fresh mapper, or the mapper of a checkpoint (a file, or
     the newest in a run folder) to continue after its last frame; autosaves go to the run folder (the mapper module
-    imports torch)."""
-    from h2viz.mapping.autosave import find_checkpoint, keep_earlier_autosave, run_progress
+    imports torch). A fresh run keeps the folder's earlier autosave under another name and offers to resume the
+    newest checkpoint there (the dashboard shows a button for it)."""
+    from h2viz.mapping.autosave import earlier_run, find_checkpoint, keep_earlier_autosave, run_progress
     from h2viz.mapping.checkpoint import load_checkpoint
     from h2viz.mapping.mapper import Mapper
 
@@ -187,10 +188,12 @@ def build_worker(cfg: Config, resume: Path | None = None, source: FrameSource | 
         kept = keep_earlier_autosave(folder)
         worker = MappingWorker(source, Mapper(cfg.mapping), cfg, autosave_dir=folder)
         if kept is not None:
-            worker.notices.append(
-                f"An earlier run's autosave is kept as {kept}. To continue that run instead, restart with "
-                f"`h2viz view --resume {kept}`."
-            )
+            worker.notices.append(f"An earlier run's autosave is kept as {kept}; this run never overwrites it.")
+        worker.resume_offer, problem = earlier_run(folder)
+        if worker.resume_offer is not None:
+            worker.notices.append(worker.resume_offer.notice())
+        elif problem is not None:
+            worker.notices.append(problem)
         return worker
     path = find_checkpoint(resume)
     mapper, extra = load_checkpoint(path, cfg.mapping)

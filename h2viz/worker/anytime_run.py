@@ -1,7 +1,8 @@
 """Headless anytime mapping of a live-paced stream (`h2viz map --realtime`, bench/realtime.py): every frame the
 feed delivers is integrated, optimisation steps fill the time between frames, and after the stream ends the map
-keeps sharpening until its loss plateaus (h2viz.mapping.anytime). The dashboard's worker runs the same schedule
-inside its own loop, between commands and renders."""
+keeps sharpening until its loss plateaus (h2viz.mapping.anytime). The run autosaves as every-frame runs do
+(autosave.*), and once more when the stream ends, before the sharpening. The dashboard's worker runs the same
+schedule inside its own loop, between commands and renders."""
 
 from __future__ import annotations
 
@@ -9,10 +10,11 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from h2viz.config import AnytimeConfig
 from h2viz.mapping.anytime import Action, AnytimeSchedule, Phase, check_anytime, plateau_from
+from h2viz.mapping.autosave import Autosaver, run_state
 from h2viz.types import FrameStats, RgbdFrame
 from h2viz.worker.feed import END, FrameFeed
 
@@ -43,35 +45,51 @@ class AnytimeTotals:
 class AnytimeRun:
     """Runs `mapper` over `feed` (a started FrameFeed in real-time mode) under the anytime schedule."""
 
-    def __init__(self, mapper: Mapper, feed: FrameFeed, cfg: AnytimeConfig, clock: Clock = time.perf_counter) -> None:
+    def __init__(
+        self,
+        mapper: Mapper,
+        feed: FrameFeed,
+        cfg: AnytimeConfig,
+        clock: Clock = time.perf_counter,
+        autosave: Autosaver | None = None,
+        earlier: list[FrameStats] | None = None,
+    ) -> None:
+        """`autosave`: writes the run folder's autosave (None: none); `earlier`: the stats of the frames a resumed
+        run mapped before, which the autosaves carry ahead of this run's."""
         check_anytime(cfg)
         self.mapper, self.feed, self.cfg, self.clock = mapper, feed, cfg, clock
+        self.autosave, self.earlier = autosave, list(earlier or [])
         self.schedule = AnytimeSchedule(cfg.opt_share)
         self.plateau = plateau_from(cfg)
         self.stats: list[FrameStats] = []
         self.totals = AnytimeTotals()
         self.losses: list[float] = []  # every step's loss, in order
+        self.errors: list[str] = []  # failed autosaves (mapping went on)
         self._newest_steps = 0
 
     def stream(self, on_frame: Callable[[RgbdFrame], bool] | None = None) -> None:
-        """Integrate every frame until the stream ends, stepping in between; `on_frame` sees each frame as it
-        arrives and returns whether to integrate it (a resumed run passes over frames it mapped before)."""
-        while True:
-            action = self.schedule.next(self.feed.ready(), bool(self.stats))
-            if action is Action.STEP:
-                self._step(self.mapper.live_step)
-                continue
-            item = self.feed.take(0.05 if action is Action.WAIT else 1.0)
-            if item is END:
-                break
-            if item is None:
-                continue
-            if on_frame is None or on_frame(item):
-                self._integrate(item)
-        self._close_newest()
-        self.totals.dropped = self.feed.dropped
-        self.totals.passed_over, self.totals.overflowed = self.feed.passed_over, self.feed.overflowed
-        self.totals.phase = Phase.SHARPENING.value
+        """Integrate every frame until the stream ends (or Ctrl-C), stepping in between; `on_frame` sees each frame
+        as it arrives and returns whether to integrate it (a resumed run passes over frames it mapped before). The
+        frames integrated since the last autosave are autosaved at the end."""
+        try:
+            while True:
+                action = self.schedule.next(self.feed.ready(), bool(self.stats))
+                if action is Action.STEP:
+                    self._step(self.mapper.live_step)
+                    continue
+                item = self.feed.take(0.05 if action is Action.WAIT else 1.0)
+                if item is END:
+                    break
+                if item is None:
+                    continue
+                if on_frame is None or on_frame(item):
+                    self._integrate(item)
+        finally:
+            self._close_newest()
+            self.totals.dropped = self.feed.dropped
+            self.totals.passed_over, self.totals.overflowed = self.feed.passed_over, self.feed.overflowed
+            self.totals.phase = Phase.SHARPENING.value
+            self._autosave(at_end=True)
 
     def sharpen(self, seconds: float | None = None, stop: Callable[[], bool] | None = None) -> bool:
         """Optimise over the keyframes after the stream, for up to `seconds` more (None: until the loss plateaus,
@@ -107,6 +125,31 @@ class AnytimeRun:
         self.schedule.did_integrate(self.clock() - t0)
         self.stats.append(stats)
         self.totals.integrated += 1
+        self._autosave()
+
+    @property
+    def frames_done(self) -> int:
+        """Frames mapped, with those of the run resumed."""
+        return len(self.earlier) + len(self.stats)
+
+    def run_state(self) -> dict[str, Any]:
+        """A checkpoint's run state: the last integrated frame and every frame's stats (as `h2viz map` writes)."""
+        return run_state(self.stats[-1].index, [*self.earlier, *self.stats])
+
+    def _autosave(self, at_end: bool = False) -> None:
+        """Autosave when one is due, or (`at_end`) when frames were integrated since the last one; a failed write
+        is noted in `errors`."""
+        saver = self.autosave
+        if saver is None or not self.stats:
+            return
+        if not at_end:
+            failed = saver.maybe_save(self.mapper, self.frames_done, self.run_state)
+        elif saver.behind(self.frames_done):
+            failed = saver.save(self.mapper, self.frames_done, self.run_state())
+        else:
+            failed = None
+        if failed is not None and failed not in self.errors:
+            self.errors.append(failed)
 
     def _step(self, step: Callable[[], float]) -> float:
         t0 = self.clock()

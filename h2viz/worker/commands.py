@@ -1,6 +1,6 @@
-"""Serving viewer Commands on the mapping thread: pause / resume / step, live settings, exports and
-checkpoints at once; renders as row-band jobs advanced round robin within a time budget, so they
-interleave with mapping instead of stalling it."""
+"""Serving viewer Commands on the mapping thread: pause / resume / step, live settings, exports, checkpoints (with
+the run state, so that they can be resumed) and taking over an earlier run at once; renders as row-band jobs
+advanced round robin within a time budget, so they interleave with mapping instead of stalling it."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from h2viz.mapping.mapper import Mapper
 
 log = logging.getLogger("h2viz.worker")
-COMMANDS = ("pause", "resume", "step", "set", "render", "export", "save", "refine")
+COMMANDS = ("pause", "resume", "step", "set", "render", "export", "save", "refine", "resume_run")
 
 
 class CommandServing:
@@ -52,6 +52,14 @@ class CommandServing:
         raise NotImplementedError
 
     def _between_steps(self) -> None:
+        raise NotImplementedError
+
+    def _autosave_extra(self) -> dict[str, Any]:
+        """The run state a checkpoint carries: where to continue and the frames' stats."""
+        raise NotImplementedError
+
+    def _resume_run(self, args: dict[str, Any]) -> str:
+        """Continue the run of the checkpoint args["path"] instead of this one."""
         raise NotImplementedError
 
     def _on_request_failure(self, kind: str, error: Exception) -> None:
@@ -94,8 +102,9 @@ class CommandServing:
             "resume": lambda a: self._set_paused(False),
             "set": self._apply_settings,
             "export": self._export,
-            "save": lambda a: requests.save_checkpoint(self.mapper, a["path"]),
+            "save": lambda a: requests.save_checkpoint(self.mapper, a["path"], self._autosave_extra()),
             "refine": self._queue_refinement,
+            "resume_run": self._resume_run,
         }
         if cmd.kind == "render":
             self._renders.append((cmd, requests.render_bands(self.mapper, cmd.args)))

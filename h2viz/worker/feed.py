@@ -38,9 +38,12 @@ class FrameFeed:
     """Reads frames on its own thread; every-frame mode queues two ahead, real-time mode plays at
     the frames' timestamp rate and keeps every frame that arrives until it is taken, up to `backlog` waiting
     frames: when that many wait, the oldest is dropped (counted in `dropped`, as are frames the reader was too
-    slow to read in time)."""
+    slow to read in time). `start_after`: the source positions up to it are passed over without reading them (a
+    resumed run mapped them; a frame's index is its position in the source), but count as read."""
 
-    def __init__(self, source: FrameSource, settings: WorkerSettings, max_frames: int, backlog: int = 30) -> None:
+    def __init__(
+        self, source: FrameSource, settings: WorkerSettings, max_frames: int, backlog: int = 30, start_after: int = -1
+    ) -> None:
         self._source, self._settings, self._max_frames = source, settings, max_frames
         self._backlog = max(1, int(backlog))
         self._items = list(enumerate(source.keys()))  # (position, key) before stride
@@ -53,7 +56,15 @@ class FrameFeed:
         self.overflowed = 0  # real-time mode: pushed out of a full backlog (integration fell behind)
         self.read = 0  # frames read or skipped so far
         self._position = 0
+        self._pass_mapped(start_after)
         self._thread = threading.Thread(target=self._run, name="h2viz-frames", daemon=True)
+
+    def _pass_mapped(self, last: int) -> None:
+        """Move past the source positions up to `last` in steps of the stride, counting them as read."""
+        stride = max(1, self._settings.stride)
+        while self._position <= last and self._position < len(self._items):
+            self._position += stride
+            self.read += 1
 
     def start(self) -> None:
         self._thread.start()

@@ -1,7 +1,8 @@
 """MappingWorker: the one thread that owns the mapper (all torch state). It maps frames from the
 feed, serves Commands between frames (render bands are interleaved with mapping under a time
 budget) and publishes a frozen MapSnapshot into its LatestSlot after every change. Mesh extraction
-runs beside it on a MeshThread, from a frozen copy of the field taken after each frame.
+runs beside it on a MeshThread, from a frozen copy of the field taken after each frame. A Command can also make it
+take over an earlier run's checkpoint and map on after that run's last frame (the dashboard's resume offer).
 
 In real-time mode it maps anytime (h2viz.mapping.anytime): every frame the feed delivers is integrated, single
 optimisation steps fill the time between frames, and when the stream ends (or no frame came for STREAM_PAUSE_S)
@@ -25,7 +26,7 @@ import numpy as np
 from h2viz.config import Config
 from h2viz.errors import H2vizError
 from h2viz.mapping.anytime import Action, AnytimeSchedule, Phase, check_anytime, plateau_from
-from h2viz.mapping.autosave import Autosaver, run_state
+from h2viz.mapping.autosave import Autosaver, ResumeOffer, run_state
 from h2viz.types import Command, FrameStats, MapSnapshot, RgbdFrame
 from h2viz.worker import requests
 from h2viz.worker.commands import CommandServing
@@ -83,7 +84,8 @@ class MappingWorker(CommandServing):
         self.slot: LatestSlot[MapSnapshot] = LatestSlot()
         self.mapped_at: dict[int, float] = {}  # frame index -> time.time() when its mapping finished
         check_anytime(cfg.anytime)
-        self._feed = FrameFeed(source, self.settings, cfg.source.max_frames, cfg.anytime.backlog_frames)
+        self._resume_after, earlier = resumed or (-1, [])
+        self._feed = self._open_feed(self._resume_after)
         self._schedule = AnytimeSchedule(cfg.anytime.opt_share)
         self._plateau = plateau_from(cfg.anytime)
         self._phase = ""  # real-time mode: a Phase value ("" in every-frame mode)
@@ -96,9 +98,9 @@ class MappingWorker(CommandServing):
         self._finished = False
         self._steps: deque[Future[Any]] = deque()
         self._renders: deque[tuple[Command, Any]] = deque()  # (command, band generator)
-        self._resume_after, earlier = resumed or (-1, [])
         self._stats: deque[FrameStats] = deque(earlier, maxlen=STATS_KEPT)
         self._n_mapped = len(earlier)  # frames mapped, with those of the run resumed
+        self._n_resumed = len(earlier)  # ... of which the run resumed mapped
         self._last_index = self._resume_after
         self._autosave = (
             Autosaver(autosave_dir, cfg.autosave, self._n_mapped, writer=requests.save_checkpoint)
@@ -108,7 +110,8 @@ class MappingWorker(CommandServing):
         self._mesh_errors_seen = 0
         self._request_fault_t = -np.inf  # time.monotonic() of the last autosave after a failed request
         self.notices: list[str] = []  # what the dashboard tells each browser that connects (an earlier run...)
-        self._poses: list[np.ndarray] = []
+        self.resume_offer: ResumeOffer | None = None  # an earlier run's checkpoint the dashboard offers to continue
+        self._poses: list[np.ndarray] = list(getattr(mapper, "trajectory", ()))
         self._current: RgbdFrame | None = None
         self._metrics: dict[str, float] = {}
         self._errors: list[str] = []
@@ -248,6 +251,11 @@ class MappingWorker(CommandServing):
         elif item is not None and item.index > self._resume_after:  # a resumed run passes over what it mapped
             self._integrate(item)
 
+    def _open_feed(self, start_after: int) -> FrameFeed:
+        """A frame feed over the source that passes over the positions up to `start_after` (a resumed run's)."""
+        cfg = self.cfg
+        return FrameFeed(self.source, self.settings, cfg.source.max_frames, cfg.anytime.backlog_frames, start_after)
+
     def _end_stream(self) -> None:
         self._finished = True
         self._resolve_steps(None)
@@ -255,6 +263,7 @@ class MappingWorker(CommandServing):
             self._close_newest()
             self._phase = Phase.SHARPENING.value
             self._plateau.reset()
+            self._autosave_stream_end()
         self._remesh()
         if self._gt is not None:
             self._refresh_metrics()
@@ -361,7 +370,85 @@ class MappingWorker(CommandServing):
                 self._errors.append(failed)
         self._publish()
 
+    # -- resuming an earlier run (the dashboard's offer) -----------------------------------------
+    def dismiss_resume_offer(self) -> None:
+        """(any thread) Drop the offer to resume an earlier run, and the notice that tells browsers about it."""
+        offer, self.resume_offer = self.resume_offer, None
+        if offer is not None and offer.notice() in self.notices:
+            self.notices.remove(offer.notice())
+
+    def _resume_run(self, args: dict[str, Any]) -> str:
+        """(mapping thread) Replace the map by the one of the checkpoint args["path"] (a file, or a run folder's
+        newest) and continue mapping after its last frame, as `h2viz view --resume` does; the stream goes back to
+        the frame after it (every source reads frames by position). Frames this run mapped are dropped. A checkpoint
+        that cannot be loaded leaves this run as it is. Returns what happened, for the user."""
+        from h2viz.mapping.autosave import find_checkpoint, run_progress
+        from h2viz.mapping.checkpoint import load_checkpoint
+
+        self.dismiss_resume_offer()
+        try:
+            path = find_checkpoint(args["path"])
+            mapper, extra = load_checkpoint(path, self.cfg.mapping)
+            last, stats = run_progress(path, extra)
+        except H2vizError as e:
+            raise H2vizError(f"{e}. This run goes on as it was.") from None
+        replaced = self._n_mapped - self._n_resumed
+        self._take_over(mapper, last, stats)
+        message = f"Resumed from {path}: {len(stats)} frames were mapped; mapping goes on after frame {last}."
+        if replaced:
+            message += f" The {replaced} frames this run had mapped were replaced by that map."
+        self.notices[:] = [message]
+        return message
+
+    def _take_over(self, mapper: Mapper, last: int, stats: list[FrameStats]) -> None:
+        """Map on with `mapper` after frame `last`, its run's `stats` appended to: the live settings carry over, the
+        stream restarts after `last`, the mesh is rebuilt and the run folder's autosave is replaced at once."""
+        self.meshing.wait_idle()
+        self._feed.stop()
+        for key in requests.MAPPER_SETTINGS:
+            setattr(mapper, key, getattr(self.mapper, key))
+        mapper.on_iteration = self._between_steps
+        self.mapper = mapper
+        self._resume_after = self._last_index = last
+        self._stats = deque(stats, maxlen=STATS_KEPT)
+        self._n_mapped = self._n_resumed = len(stats)
+        self._poses = list(getattr(mapper, "trajectory", ()))
+        self._reset_progress()
+        self._feed = self._open_feed(last)
+        self._feed.hold(self._paused and not self._steps)
+        self._feed.start()
+        if self._autosave is not None:
+            self._autosave.restart(self._n_mapped)
+            if self._autosave.path.exists():  # it holds the map just replaced
+                failed = self._autosave.save(mapper, self._n_mapped, self._autosave_extra())
+                if failed is not None:
+                    self._errors.append(failed)
+        self._publish()  # before the mesh follows: no snapshot pairs the new map with the old run's progress
+        self._remesh()
+
+    def _reset_progress(self) -> None:
+        """Forget what the replaced map's run did: its frames, failures, queued refinement and real-time phase."""
+        self._finished = False
+        self._current = None
+        self.mapped_at.clear()
+        self._metrics = {}
+        self._failures = self._consecutive = self._unmeshed = self._newest_steps = 0
+        self._refine_left = self._refined = 0
+        self._mesh_dirty = False
+        self._phase = ""
+        self._plateau.reset()
+        self._sharpen_s = 0.0
+        self._last_frame_t = time.monotonic()
+
     # -- keeping the work ----------------------------------------------------------------------
+    def _autosave_stream_end(self) -> None:
+        """Real-time mode: autosave the frames mapped since the last autosave when the stream ends, since
+        sharpening may go on for anytime.sharpen_max_s and maps no frames that would make an autosave due."""
+        if self._autosave is not None and self._autosave.behind(self._n_mapped):
+            failed = self._autosave.save(self.mapper, self._n_mapped, self._autosave_extra())
+            if failed is not None:
+                self._errors.append(failed)
+
     def _autosave_extra(self) -> dict[str, Any]:
         """A checkpoint's run state: where to continue and the frames' stats (as `h2viz map` writes them)."""
         return run_state(self._last_index, self._stats)
@@ -502,7 +589,7 @@ class MappingWorker(CommandServing):
                 stats=tuple(self._stats),
                 paused=self._paused,
                 finished=self._finished,
-                skipped=len(self.source.skipped) + self._failures,
+                skipped=len({s.key for s in self.source.skipped}) + self._failures,  # once, when read again on resume
                 dropped=self._feed.dropped,
                 metrics=dict(self._metrics),
                 memory_mb=rss_mb(),

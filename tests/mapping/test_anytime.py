@@ -1,18 +1,25 @@
 """The anytime schedule against a fake clock (no wall-clock time is measured): every frame of a 30 Hz stream is
 integrated, optimisation steps fill the time between frames and keep their share when frames come faster than
-both fit; continued optimisation after the stream stops once the loss plateaus."""
+both fit; continued optimisation after the stream stops once the loss plateaus; the run autosaves on schedule and
+at the end of the stream."""
 
 from __future__ import annotations
 
 import math
+from collections import deque
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from h2viz.config import AnytimeConfig
+from h2viz.config import AnytimeConfig, AutosaveConfig
 from h2viz.errors import ConfigError
 from h2viz.mapping.anytime import Action, AnytimeSchedule, Phase, Plateau, check_anytime
+from h2viz.mapping.autosave import Autosaver
+from h2viz.types import FrameStats
 from h2viz.worker.anytime_run import AnytimeRun
+from h2viz.worker.feed import END
 
 
 def simulate(
@@ -137,3 +144,64 @@ def test_bad_settings_name_the_field() -> None:
         check_anytime(AnytimeConfig(opt_share=1.0))
     with pytest.raises(ConfigError, match="anytime.backlog_frames"):
         check_anytime(AnytimeConfig(backlog_frames=0))
+
+
+class ArrivedFeed:
+    """A FrameFeed stand-in whose frames have all arrived: each is there to take, then the end of the stream."""
+
+    dropped = passed_over = overflowed = 0
+
+    def __init__(self, indices: range) -> None:
+        self.items: deque[object] = deque([*(SimpleNamespace(index=i) for i in indices), END])
+
+    def ready(self) -> bool:
+        return bool(self.items)
+
+    def take(self, timeout_s: float) -> object:
+        return self.items.popleft() if self.items else None
+
+
+class IntegratingMapper(CountingMapper):
+    """What AnytimeRun.stream calls: frames integrated at once and live steps."""
+
+    def add_frame(self, frame: SimpleNamespace, color_points: int, observed_points: int) -> FrameStats:
+        return FrameStats(frame.index, 0.01, 0, 1, 1)
+
+    def live_step(self) -> float:
+        self.steps += 1
+        return 1.0
+
+
+def autosaved_run(every_s: float, fail: bool = False) -> tuple[AnytimeRun, list[tuple[int, int, float]]]:
+    """A resumed run (frames 0-2 mapped before) streaming frames 3-22 under a fake clock, autosaving every `every_s`
+    (fake) seconds; the run and its autosaves: (frames in it, its last frame, when). `fail`: every write fails."""
+    clock = FakeClock(0.01)
+    saves: list[tuple[int, int, float]] = []
+
+    def writer(mapper: object, path: Path, extra: dict) -> None:
+        if fail:
+            raise OSError(28, "No space left on device")
+        saves.append((len(extra["stats"]), extra["last_index"], clock.now))
+
+    earlier = [FrameStats(i, 0.01, 0, 1, 1) for i in range(3)]
+    saver = Autosaver(Path("/nonexistent"), AutosaveConfig(every_frames=0, every_s=every_s), 3, clock, writer)
+    run = AnytimeRun(IntegratingMapper(), ArrivedFeed(range(3, 23)), AnytimeConfig(), clock, saver, earlier)  # type: ignore[arg-type]
+    run.stream()
+    return run, saves
+
+
+def test_a_realtime_run_autosaves_every_m_seconds_and_when_the_stream_ends() -> None:
+    run, saves = autosaved_run(0.1)
+    assert run.totals.integrated == 20 and not run.errors
+    assert len(saves) >= 3 and saves[-1][:2] == (23, 22)  # the last autosave holds every frame, the earlier ones too
+    assert all(last == n - 1 for n, last, _ in saves)  # each holds the frames up to the one just integrated
+    assert (np.diff([n for n, _, _ in saves]) > 0).all()  # never twice the same frames
+    assert (np.diff([t for _, _, t in saves[:-1]]) >= 0.1 - 1e-9).all()  # due by time; the last one at the end
+
+
+def test_a_failing_autosave_of_a_realtime_run_is_reported_once_and_mapping_goes_on() -> None:
+    run, _ = autosaved_run(0.05, fail=True)
+    assert run.totals.integrated == 20 and len(run.stats) == 20
+    assert run.errors == [
+        "autosave failed: [Errno 28] No space left on device; mapping goes on, the previous autosave is kept"
+    ]
