@@ -23,9 +23,10 @@ from h2viz.types import RgbdFrame
 
 ROTATION_M = 0.5
 """Metres of camera distance that a full turn of viewing direction (1 - cos) counts as, when ranking views."""
-MIN_SPACING = 0.02
-"""A frame closer than this (in the ranking's metres) to a stored view is not stored: it adds little, and a camera
-that goes over the same places again (or stands still) does not fill the store with copies."""
+MIN_SPACING = 0.005
+"""A frame closer than this (in the ranking's metres) to a stored view is not stored: a camera that stands still
+does not fill the store with copies (further apart, the nearest frames matter: storing views 2 cm apart instead
+of every frame costs 2.1 dB on held-out views of 7-Scenes redkitchen; the budget bounds the store)."""
 DEPTH_TOL_M = 0.03
 """A view sees a point when its depth at the point's pixel is within max(this, DEPTH_TOL_REL x depth)..."""
 DEPTH_TOL_REL = 0.02

@@ -105,7 +105,7 @@ def test_the_budget_retires_the_most_redundant_view() -> None:
         views.add(frame)
     assert [v.index for v in views.views] == [0, 2, 3]  # 1 and 2 were 5 cm apart: the older one went
     assert views.nbytes <= views.budget_bytes
-    views.add(plane_frame(9, pose(2.01)))  # within MIN_SPACING of view 3: nothing to add
+    views.add(plane_frame(9, pose(2.002)))  # within MIN_SPACING of view 3: nothing to add
     assert [v.index for v in views.views] == [0, 2, 3]
     assert [v.index for v in views.nearest(pose(1.9))] == [3, 2]
 
