@@ -1,5 +1,5 @@
 """Where a mapped run loses quality: PSNR split by image region, and Acc split into the protocol's sampling floor
-and the reconstruction's own error (h2viz/eval/budget.py).
+and the reconstruction's own error (bench/analysis/budget.py).
 
 Reproduce:  .venv/bin/h2viz map --out /tmp/run --set mapping.threads=2     (the synthetic room; any source works)
             .venv/bin/python bench/budget.py /tmp/run [--gt-mesh FILE] [--views 20]
@@ -20,9 +20,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.analysis.budget import RegionErrors, acc_budget, half_pixel_psnr  # noqa: E402
 from bench.common import command_line, fmt, markdown_table  # noqa: E402
 from h2viz.config import load_config  # noqa: E402
-from h2viz.eval.budget import RegionErrors, acc_budget, half_pixel_psnr  # noqa: E402
 from h2viz.eval.metrics import observed_mask_fn  # noqa: E402
 from h2viz.eval.report import load_mesh, render_view, training_views  # noqa: E402
 from h2viz.mapping.checkpoint import load_checkpoint  # noqa: E402

@@ -1,4 +1,4 @@
-"""The PSNR ceiling of the map's colour representation (h2viz/eval/ceiling.py): the colour hash grid and decoder
+"""The PSNR ceiling of the map's colour representation (bench/analysis/ceiling.py): the colour hash grid and decoder
 that `h2viz map` trains, fitted straight to the ground-truth colours of the views that are scored, at their
 true surface points, with a squared loss: in practice an upper bound for mapping runs with that representation
 on those views; the curve over the steps shows whether the fit has levelled off.
@@ -28,10 +28,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import DATASETS, MissingData, command_line, dataset_config, fmt, markdown_table, pick  # noqa: E402
-from h2viz.config import Config, MappingConfig, apply_overrides, load_config  # noqa: E402
-from h2viz.errors import H2vizError  # noqa: E402
-from h2viz.eval.ceiling import (  # noqa: E402
+from bench.analysis.ceiling import (  # noqa: E402
     LOSSES,
     RENDERS,
     CeilingPoint,
@@ -41,6 +38,9 @@ from h2viz.eval.ceiling import (  # noqa: E402
     score,
     surface_colours,
 )
+from bench.common import DATASETS, MissingData, command_line, dataset_config, fmt, markdown_table, pick  # noqa: E402
+from h2viz.config import Config, MappingConfig, apply_overrides, load_config  # noqa: E402
+from h2viz.errors import H2vizError  # noqa: E402
 from h2viz.eval.report import training_views  # noqa: E402
 from h2viz.mapping.checkpoint import load_checkpoint  # noqa: E402
 from h2viz.pipeline import EvalFrames  # noqa: E402

@@ -32,7 +32,7 @@ from torch import Tensor
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from h2viz.mapping.backend import resolve_backend  # noqa: E402
-from h2viz.mapping.encoding import (  # noqa: E402
+from h2viz.mapping.field.encoding import (  # noqa: E402
     HASH_PRIMES,
     HashGrid,
     corners_and_weights,

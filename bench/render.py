@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.common import DATASETS, command_line, dataset_config, markdown_table  # noqa: E402
 from h2viz.mapping.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from h2viz.mapping.mapper import Mapper  # noqa: E402
-from h2viz.mapping.raycast import RenderParams, render_image_reference  # noqa: E402
+from h2viz.mapping.rendering.images import RenderParams, render_image_reference  # noqa: E402
 from h2viz.sources.base import make_source  # noqa: E402
 
 SIZES = ((160, 120), (320, 240), (640, 480))

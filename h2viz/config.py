@@ -146,7 +146,7 @@ class MappingConfig:
     """Initialise corner SDF priors by projecting depth (off = zero priors, ablation)."""
     fine_priors: bool = True
     """Also fuse every frame's truncated projective SDF into a 1.25 cm lattice in each voxel (at 10 cm voxels;
-    h2viz.mapping.fine_prior), which replaces the corner priors wherever frames reached it (false = the paper:
+    h2viz.mapping.field.fine_prior), which replaces the corner priors wherever frames reached it (false = the paper:
     corner priors written once). Held-out views, docs/heldout.md: +0.5 to +1.4 dB PSNR and 0.15-0.55 cm less depth
     error than the corner priors on all four sequences."""
     fine_prior_residual: bool = False
@@ -181,7 +181,7 @@ class MappingConfig:
     an unbounded residual carries that pull into unobserved parts of voxels as spurious surfaces."""
     color_prior: bool = True
     """Explicit colour priors: every frame's pixel colours averaged on a fine lattice in each voxel
-    (h2viz.mapping.color_prior), the colour network learning the residual of their logit, as the hash grid
+    (h2viz.mapping.field.color_prior), the colour network learning the residual of their logit, as the hash grid
     learns the residual of the SDF priors (false = the paper: the network learns colour alone)."""
     color_prior_cells: int = 12
     """Lattice cells per voxel edge of the colour priors (12 = 0.83 cm apart at 10 cm voxels); memory grows with
@@ -189,7 +189,7 @@ class MappingConfig:
     1.1 dB on the synthetic room and 0.4 dB on 7-Scenes redkitchen, 12 -> 16 a further 0.1)."""
     color_views: int = 8
     """Rendered colour (dashboard, evaluation, fly-throughs) blends the images of this many stored views nearest
-    the camera where they see the surface point, with lumigraph weights (h2viz.mapping.color_views): as sharp as
+    the camera where they see the surface point, with lumigraph weights (h2viz.mapping.field.color_views): as sharp as
     the frames, and view-dependent; the colour field where no view sees it (0 = the colour field alone, the paper).
     Held-out views, one run: 7-Scenes redkitchen 24.7 -> 29.1 dB. Surface renders only (render_surface)."""
     color_views_mb: float = 512.0

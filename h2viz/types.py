@@ -111,7 +111,7 @@ class FrameStats:
     keyframe_mb: float = 0.0
     """Memory of the keyframes after this frame (rays, voxel lists, thumbnails), MB."""
     view_mb: float = 0.0
-    """Memory of the stored colour views after this frame (h2viz.mapping.color_views), MB."""
+    """Memory of the stored colour views after this frame (h2viz.mapping.field.color_views), MB."""
 
 
 @dataclass(frozen=True)

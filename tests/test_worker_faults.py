@@ -15,7 +15,7 @@ from h2viz.errors import H2vizError
 from h2viz.mapping import checkpoint_format
 from h2viz.mapping.autosave import AUTOSAVE_NAME
 from h2viz.mapping.checkpoint import load_checkpoint
-from h2viz.mapping.mesh_job import MeshJob
+from h2viz.mapping.meshing.job import MeshJob
 from h2viz.viewer import server
 from h2viz.worker import END, FrameFeed, MappingWorker, WorkerSettings
 from tests.viewer.fakes import BoxRoomSource, intrinsics, recording_mapper, room_pose, tiny_mapping_config

@@ -30,29 +30,29 @@ KERNEL_CHOICES: tuple[str, ...] = ("auto", "torch")
 class TensorKernels:
     """Compiled kernels on CPU float32 tensors (each module's parity test holds the torch reference)."""
 
-    frame: ModuleType  # h2viz.mapping.frame_numba: a frame's rays and the ray batches
-    band: ModuleType  # h2viz.mapping.band: the training samples around measured depth
-    hash: ModuleType  # h2viz.mapping.hash_numba: hash-grid encoding and its table gradient
-    prior: ModuleType  # h2viz.mapping.prior_numba: trilinear corner priors
-    decoder: ModuleType  # h2viz.mapping.decoder_numba: one-hidden-layer decoders
-    loss: ModuleType  # h2viz.mapping.loss_numba: render weights and the four losses
-    optim: ModuleType  # h2viz.mapping.optim_numba: row-sparse Adam
-    color_prior: ModuleType  # h2viz.mapping.color_prior_numba: colour splats and blends
-    fine_prior: ModuleType  # h2viz.mapping.fine_prior_numba: fine SDF prior blends
+    frame: ModuleType  # h2viz.mapping.kernels.frame_numba: a frame's rays and the ray batches
+    band: ModuleType  # h2viz.mapping.kernels.band_numba: the training samples around measured depth
+    hash: ModuleType  # h2viz.mapping.kernels.hash_numba: hash-grid encoding and its table gradient
+    prior: ModuleType  # h2viz.mapping.kernels.prior_numba: trilinear corner priors
+    decoder: ModuleType  # h2viz.mapping.kernels.decoder_numba: one-hidden-layer decoders
+    loss: ModuleType  # h2viz.mapping.kernels.loss_numba: render weights and the four losses
+    optim: ModuleType  # h2viz.mapping.kernels.optim_numba: row-sparse Adam
+    color_prior: ModuleType  # h2viz.mapping.kernels.color_prior_numba: colour splats and blends
+    fine_prior: ModuleType  # h2viz.mapping.kernels.fine_prior_numba: fine SDF prior blends
 
 
 @dataclass(frozen=True)
 class ArrayKernels:
     """Compiled kernels on host NumPy arrays (used on any device)."""
 
-    walk: ModuleType  # h2viz.mapping.raymarch: voxel walks (dda.py) and render lattices
-    search: ModuleType  # h2viz.mapping.surface: which render samples the networks evaluate
-    marching: ModuleType  # h2viz.mapping.marching_numba: lattices, marching cubes, vertex matching
-    support: ModuleType  # h2viz.mapping.support_numba: observed-space tests of mesh faces
-    prior: ModuleType  # h2viz.mapping.prior_numba: the frozen field's prior blend
-    decoder: ModuleType  # h2viz.mapping.decoder_numba: the frozen field's decoder on CPU features
-    fine_prior: ModuleType  # h2viz.mapping.fine_prior_numba: depth fusion into fine SDF priors, their blends
-    octree: ModuleType  # h2viz.mapping.octree_numba: a frame's occupied cells, counts and mean points
+    walk: ModuleType  # h2viz.mapping.kernels.voxel_walk: voxel walks (voxel_walk_numba.py) and render lattices
+    search: ModuleType  # h2viz.mapping.kernels.render_search: which render samples the networks evaluate
+    marching: ModuleType  # h2viz.mapping.kernels.marching_numba: lattices, marching cubes, vertex matching
+    support: ModuleType  # h2viz.mapping.kernels.observed_numba: observed-space tests of mesh faces
+    prior: ModuleType  # h2viz.mapping.kernels.prior_numba: the frozen field's prior blend
+    decoder: ModuleType  # h2viz.mapping.kernels.decoder_numba: the frozen field's decoder on CPU features
+    fine_prior: ModuleType  # h2viz.mapping.kernels.fine_prior_numba: depth fusion into fine SDF priors, their blends
+    octree: ModuleType  # h2viz.mapping.kernels.octree_numba: a frame's occupied cells, counts and mean points
 
 
 @dataclass(frozen=True)
@@ -81,8 +81,8 @@ REFERENCE = Backend("torch", torch.device("cpu"))
 def _compiled() -> tuple[TensorKernels, ArrayKernels] | None:
     """Every kernel module, imported once; None when numba (or a kernel module) cannot be imported."""
     try:
-        from h2viz.mapping import (
-            band,
+        from h2viz.mapping.kernels import (
+            band_numba,
             color_prior_numba,
             decoder_numba,
             fine_prior_numba,
@@ -90,22 +90,23 @@ def _compiled() -> tuple[TensorKernels, ArrayKernels] | None:
             hash_numba,
             loss_numba,
             marching_numba,
+            observed_numba,
             octree_numba,
             optim_numba,
             prior_numba,
-            raymarch,
-            support_numba,
-            surface,
+            render_search,
+            voxel_walk,
         )
     except ImportError:
         return None
     tensors = TensorKernels(
-        frame_numba, band, hash_numba, prior_numba, decoder_numba, loss_numba, optim_numba, color_prior_numba,
+        frame_numba, band_numba, hash_numba, prior_numba, decoder_numba, loss_numba, optim_numba, color_prior_numba,
         fine_prior_numba,
     )  # fmt: skip
     arrays = ArrayKernels(
-        raymarch, surface, marching_numba, support_numba, prior_numba, decoder_numba, fine_prior_numba, octree_numba
-    )
+        voxel_walk, render_search, marching_numba, observed_numba, prior_numba, decoder_numba, fine_prior_numba,
+        octree_numba,
+    )  # fmt: skip
     return tensors, arrays
 
 

@@ -12,10 +12,10 @@ from h2viz.config import MappingConfig
 from h2viz.errors import CheckpointError
 from h2viz.mapping import checkpoint_format
 from h2viz.mapping.backend import Backend
-from h2viz.mapping.color_views import StoredView
-from h2viz.mapping.keyframe_budget import BudgetReport
+from h2viz.mapping.field.color_views import StoredView
+from h2viz.mapping.keyframes.budget import BudgetReport
 from h2viz.mapping.mapper import Mapper
-from h2viz.mapping.rays import FrameRays
+from h2viz.mapping.sampling.rays import FrameRays
 from h2viz.types import RgbdFrame
 
 FORMAT_VERSION = 2

@@ -14,21 +14,21 @@ import trimesh
 
 from h2viz.config import MappingConfig
 from h2viz.mapping.backend import Backend, resolve_backend
-from h2viz.mapping.color_views import ColorViews
-from h2viz.mapping.field import HybridField
-from h2viz.mapping.keyframe_budget import KeyframeBudget, keyframe_bytes
-from h2viz.mapping.keyframes import KeyframeSet
-from h2viz.mapping.losses import check_color_settings, color_error, mapping_losses
-from h2viz.mapping.mesh_job import FrozenField, MeshJob
-from h2viz.mapping.meshing import ChunkedMesher, export_mesh, merge_chunks
-from h2viz.mapping.octree import Allocation, VoxelOctree
+from h2viz.mapping.field.color_views import ColorViews
+from h2viz.mapping.field.corner_prior import PriorInitializer
+from h2viz.mapping.field.hybrid_field import HybridField
+from h2viz.mapping.field.octree import Allocation, VoxelOctree
+from h2viz.mapping.keyframes.budget import KeyframeBudget, keyframe_bytes
+from h2viz.mapping.keyframes.keyframe_set import KeyframeSet
+from h2viz.mapping.meshing.job import FrozenField, MeshJob
+from h2viz.mapping.meshing.mesher import ChunkedMesher, export_mesh, merge_chunks
+from h2viz.mapping.meshing.observed import ObservedCells
 from h2viz.mapping.optim import GrowingAdam
-from h2viz.mapping.priors import PriorInitializer
-from h2viz.mapping.raycast import RenderParams, SurfaceColor, locate, render_image
-from h2viz.mapping.rays import FrameRays, RayBatch, sample_frames
-from h2viz.mapping.rendering import composite, live_samples, render_weights
-from h2viz.mapping.sampling import BandLayout, Samples, band_samples, sample_rays
-from h2viz.mapping.support import ObservedCells
+from h2viz.mapping.rendering.images import RenderParams, SurfaceColor, locate, render_image
+from h2viz.mapping.rendering.losses import check_color_settings, color_error, mapping_losses
+from h2viz.mapping.rendering.volume import composite, live_samples, render_weights
+from h2viz.mapping.sampling.rays import FrameRays, RayBatch, sample_frames
+from h2viz.mapping.sampling.samples import BandLayout, Samples, band_samples, sample_rays
 from h2viz.timing import StageTimer
 from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
 
@@ -310,7 +310,7 @@ class Mapper:
 
     def _losses(self, samples: Samples, sdf: torch.Tensor, batch: RayBatch) -> dict[str, torch.Tensor]:
         """Render the batch and take the four losses (colour evaluated only where the weights matter, not at all when
-        colour has a batch of its own): the backend's fused kernels (h2viz.mapping.loss_numba), else the torch
+        colour has a batch of its own): the backend's fused kernels (h2viz.mapping.kernels.loss_numba), else the torch
         functions they reproduce."""
         cfg = self.geometry_cfg
         color = self.field.color if self.volume_color else self._no_color

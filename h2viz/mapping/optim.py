@@ -86,7 +86,7 @@ class GrowingAdam:
     def _fused_update(
         self, p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor, steps: torch.Tensor
     ) -> bool:
-        """The row-sparse step through the compiled kernel (h2viz.mapping.optim_numba) when it applies: contiguous
+        """The row-sparse step through the compiled kernel (kernels.optim_numba) when it applies: contiguous
         float32 CPU tensors and a backend with tensor kernels. False when it does not (the torch code runs instead)."""
         tensors = (p, g, m, v, steps)
         kernels = None if self.backend is None else self.backend.cpu_kernels(*tensors)

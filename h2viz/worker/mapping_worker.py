@@ -562,7 +562,7 @@ class MappingWorker(CommandServing):
     def _refresh_metrics(self) -> None:
         """Ground-truth metrics of the mesh as it is now (while mapping: the live chunks, no re-meshing)."""
         from h2viz.eval.metrics import mesh_metrics, voxel_mask_fn
-        from h2viz.mapping.meshing import merge_chunks
+        from h2viz.mapping.meshing.mesher import merge_chunks
 
         try:
             mask = voxel_mask_fn(self.mapper.voxel_coords(), self.mapper.voxel_size_m)

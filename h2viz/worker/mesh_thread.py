@@ -30,7 +30,7 @@ class PassRecord:
 
 class MeshThread:
     """Runs jobs (objects with `run(stop, on_pass)`, `after(older)`, `version`, `field_version`, like
-    `h2viz.mapping.mesh_job.MeshJob`) one at a time; `publish()` is called after passes, no more often than
+    `h2viz.mapping.meshing.job.MeshJob`) one at a time; `publish()` is called after passes, no more often than
     `rate_hz()` (<= 0: no limit)."""
 
     def __init__(self, publish: Callable[[], None], rate_hz: Callable[[], float]) -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from h2viz.mapping.mapper import Mapper
-from h2viz.mapping.rays import FrameRays
+from h2viz.mapping.sampling.rays import FrameRays
 from h2viz.types import RgbdFrame
 from tests.mapping.analytic import Scene, orbit
 from tests.mapping.backends import REFERENCE

@@ -1,0 +1,133 @@
+"""Numba kernels of the colour prior (`h2viz.mapping.field.color_prior.ColorPrior`'s torch code is their reference):
+splatting a frame's colours onto the voxels' lattices, and blending them at query points, each voxel found in
+the octree's hash table."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from h2viz.mapping.kernels.jit import njit
+from h2viz.mapping.kernels.voxel_walk_numba import lookup
+
+
+@njit(inline=True)
+def _lattice(
+    p: np.ndarray, v: int, origin: np.ndarray, inv_cell: float, sub: int, idx: np.ndarray, w: np.ndarray
+) -> None:
+    """idx (8,) flat indices into the (V*(sub+1)^3, 4) sums and w (8,) trilinear weights of point p in voxel v."""
+    n = sub + 1
+    base = np.empty(3, np.int64)
+    frac = np.empty(3, np.float32)
+    for a in range(3):
+        x = min(max((p[a] - origin[v, a]) * inv_cell, 0.0), float(sub))
+        b = min(int(np.floor(x)), sub - 1)
+        base[a], frac[a] = b, x - b
+    k = 0
+    for dx in range(2):
+        for dy in range(2):
+            for dz in range(2):
+                wx = frac[0] if dx else 1.0 - frac[0]
+                wy = frac[1] if dy else 1.0 - frac[1]
+                wz = frac[2] if dz else 1.0 - frac[2]
+                idx[k] = v * n * n * n + ((base[0] + dx) * n + base[1] + dy) * n + base[2] + dz
+                w[k] = wx * wy * wz
+                k += 1
+
+
+@njit(inline=True)
+def _voxel(p: np.ndarray, vs: float, keys: np.ndarray, ids: np.ndarray, tolerant: bool) -> int:
+    """Voxel id of point p (-1 outside the map); `tolerant` also accepts points on an allocated voxel's outer face."""
+    v = lookup(keys, ids, int(np.floor(p[0] / vs)), int(np.floor(p[1] / vs)), int(np.floor(p[2] / vs)))
+    if v >= 0 or not tolerant:
+        return v
+    eps = 1e-4 * vs
+    for code in range(27):
+        sx, sy, sz = (code // 9 - 1) * eps, (code // 3 % 3 - 1) * eps, (code % 3 - 1) * eps
+        v = lookup(keys, ids, int(np.floor((p[0] + sx) / vs)), int(np.floor((p[1] + sy) / vs)),
+                   int(np.floor((p[2] + sz) / vs)))  # fmt: skip
+        if v >= 0:
+            return v
+    return -1
+
+
+@njit
+def splat(
+    points: np.ndarray, rgb: np.ndarray, keys: np.ndarray, ids: np.ndarray, origin: np.ndarray, vs: float, sub: int,
+    sums: np.ndarray,
+) -> None:  # fmt: skip
+    """sums (V*(sub+1)^3, 4) += colours rgb (N,3) in [0,1] at points (N,3), trilinear weights; points outside the
+    map are skipped. Serial: neighbouring pixels write the same lattice points. Scalar code with no array made per
+    point (`_lattice`'s small arrays cost ~5x the splat itself at 160k points a frame)."""
+    inv_cell = sub / vs
+    n = sub + 1
+    n_voxels = min(origin.shape[0], sums.shape[0] // (n * n * n))
+    lx, ly, lz, lv = 0, 0, 0, -2  # the last cell looked up and its voxel: neighbouring pixels share it
+    for i in range(points.shape[0]):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        cx, cy, cz = int(np.floor(px / vs)), int(np.floor(py / vs)), int(np.floor(pz / vs))
+        if lv == -2 or cx != lx or cy != ly or cz != lz:
+            lx, ly, lz, lv = cx, cy, cz, lookup(keys, ids, cx, cy, cz)
+        v = lv
+        if v < 0 or v >= n_voxels:
+            continue
+        x = min(max((px - origin[v, 0]) * inv_cell, 0.0), float(sub))
+        y = min(max((py - origin[v, 1]) * inv_cell, 0.0), float(sub))
+        z = min(max((pz - origin[v, 2]) * inv_cell, 0.0), float(sub))
+        bx, by, bz = min(int(np.floor(x)), sub - 1), min(int(np.floor(y)), sub - 1), min(int(np.floor(z)), sub - 1)
+        fx, fy, fz = x - bx, y - by, z - bz
+        r, g, b = rgb[i, 0], rgb[i, 1], rgb[i, 2]
+        base = v * n * n * n
+        for dx in range(2):
+            wx = fx if dx else 1.0 - fx
+            for dy in range(2):
+                wy = fy if dy else 1.0 - fy
+                for dz in range(2):
+                    w = wx * wy * (fz if dz else 1.0 - fz)
+                    k = base + ((bx + dx) * n + by + dy) * n + bz + dz
+                    sums[k, 0] += w * r
+                    sums[k, 1] += w * g
+                    sums[k, 2] += w * b
+                    sums[k, 3] += w
+
+
+@njit(parallel=True)
+def blend(
+    points: np.ndarray, keys: np.ndarray, ids: np.ndarray, origin: np.ndarray, vs: float, sub: int,
+    sums: np.ndarray, empty: float, out_rgb: np.ndarray, out_w: np.ndarray,
+) -> None:  # fmt: skip
+    """out_rgb (N,3) <- the prior colour at points (N,3) (`empty` where nothing was observed), out_w (N,) <- its
+    blended weight. Within one lattice cell of a voxel face, the neighbour across it adds its own lattice's blend
+    at the point moved onto the face: the splats of a surface on a face land on one side only."""
+    inv_cell = sub / vs
+    cell = vs / sub
+    n_voxels = min(origin.shape[0], sums.shape[0] // ((sub + 1) ** 3))  # a frozen copy may lag the live octree
+    for i in numba.prange(points.shape[0]):
+        idx, w = np.empty(8, np.int64), np.empty(8, np.float32)
+        acc = np.zeros(4, np.float32)
+        p = points[i]
+        q = np.empty(3, np.float32)
+        c0 = np.empty(3, np.int64)
+        for a in range(3):
+            c0[a] = int(np.floor(p[a] / vs))
+        for code in range(27):
+            off = (code // 9 - 1, code // 3 % 3 - 1, code % 3 - 1)
+            near = True
+            for a in range(3):
+                lo = p[a] - c0[a] * vs  # position inside the point's own voxel, metres
+                if (off[a] == -1 and lo >= cell) or (off[a] == 1 and lo <= vs - cell):
+                    near = False
+            if not near:
+                continue
+            v = lookup(keys, ids, c0[0] + off[0], c0[1] + off[1], c0[2] + off[2])
+            if v < 0 or v >= n_voxels:
+                continue
+            for a in range(3):
+                q[a] = p[a]
+            _lattice(q, v, origin, inv_cell, sub, idx, w)  # clamps the point onto the voxel's box
+            for k in range(8):
+                for c in range(4):
+                    acc[c] += w[k] * sums[idx[k], c]
+        for c in range(3):
+            out_rgb[i, c] = acc[c] / acc[3] if acc[3] > 1e-6 else empty
+        out_w[i] = acc[3]

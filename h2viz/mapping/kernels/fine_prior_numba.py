@@ -1,0 +1,107 @@
+"""Numba kernels of the fine SDF prior (`h2viz.mapping.field.fine_prior.FinePrior`'s torch code is their reference):
+fusing a frame's depth into the voxels' lattices, and blending them at query points."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from h2viz.mapping.kernels.jit import njit
+
+
+@njit(parallel=True)
+def fuse(
+    origin: np.ndarray, depth: np.ndarray, K: np.ndarray, T_camera_world: np.ndarray, vs: float, sub: int,
+    tr: float, state: np.ndarray,
+) -> None:  # fmt: skip
+    """state (V*(sub+1)^3, 2) += (truncated SDF in tr units, 1) at every lattice point of voxels with origins
+    (V,3) that projects onto valid depth and lies at most tr behind it. Voxels whose bounding sphere leaves the
+    image are skipped whole; each voxel's lattice is written by one thread."""
+    n = sub + 1
+    h, w = depth.shape
+    cell = vs / sub
+    radius = 0.5 * np.sqrt(3.0) * vs
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    R, t = T_camera_world[:3, :3], T_camera_world[:3, 3]
+    for v in numba.prange(origin.shape[0]):
+        c = np.empty(3)
+        for a in range(3):
+            c[a] = origin[v, a] + 0.5 * vs
+        zc = R[2, 0] * c[0] + R[2, 1] * c[1] + R[2, 2] * c[2] + t[2]
+        if zc < -radius:
+            continue
+        if zc > radius:  # the whole voxel is in front of the camera: cull by its projected sphere
+            xc = R[0, 0] * c[0] + R[0, 1] * c[1] + R[0, 2] * c[2] + t[0]
+            yc = R[1, 0] * c[0] + R[1, 1] * c[1] + R[1, 2] * c[2] + t[1]
+            uc, vc = fx * xc / zc + cx, fy * yc / zc + cy
+            r_px = max(fx, fy) * radius / (zc - radius)
+            if uc < -r_px or uc > w + r_px or vc < -r_px or vc > h + r_px:
+                continue
+        base = v * n * n * n
+        for i in range(n):
+            px = origin[v, 0] + i * cell
+            for j in range(n):
+                py = origin[v, 1] + j * cell
+                for k in range(n):
+                    pz = origin[v, 2] + k * cell
+                    z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+                    if z <= 1e-6:
+                        continue
+                    x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+                    y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+                    u = int(np.round(fx * x / z + cx))
+                    vv = int(np.round(fy * y / z + cy))
+                    if u < 0 or u >= w or vv < 0 or vv >= h:
+                        continue
+                    d = depth[vv, u]
+                    if d <= 0.0:
+                        continue
+                    sdf = d - z
+                    if sdf < -tr:
+                        continue
+                    idx = base + (i * n + j) * n + k
+                    state[idx, 0] += min(sdf, tr) / tr
+                    state[idx, 1] += 1.0
+
+
+@njit(parallel=True)
+def blend(
+    points: np.ndarray, voxel: np.ndarray, origin: np.ndarray, vs: float, sub: int, state: np.ndarray,
+    out_value: np.ndarray, out_cover: np.ndarray,
+) -> None:  # fmt: skip
+    """out_value (N,) <- sum over the 8 lattice points around each point (N,3) in voxels (N,) that hold fused
+    values of trilinear weight * mean SDF; out_cover (N,) <- the sum of their weights (0 where none)."""
+    n = sub + 1
+    inv_cell = sub / vs
+    n_voxels = min(origin.shape[0], state.shape[0] // (n * n * n))  # a frozen copy may lag the live octree
+    for p in numba.prange(points.shape[0]):
+        v = voxel[p]
+        out_value[p] = 0.0
+        out_cover[p] = 0.0
+        if v < 0 or v >= n_voxels:
+            continue
+        b0, b1, b2 = 0, 0, 0
+        f0, f1, f2 = 0.0, 0.0, 0.0
+        for a in range(3):
+            x = min(max((points[p, a] - origin[v, a]) * inv_cell, 0.0), float(sub))
+            b = min(int(np.floor(x)), sub - 1)
+            if a == 0:
+                b0, f0 = b, x - b
+            elif a == 1:
+                b1, f1 = b, x - b
+            else:
+                b2, f2 = b, x - b
+        value, cover = 0.0, 0.0
+        for dx in range(2):
+            wx = f0 if dx else 1.0 - f0
+            for dy in range(2):
+                wy = f1 if dy else 1.0 - f1
+                for dz in range(2):
+                    idx = v * n * n * n + ((b0 + dx) * n + b1 + dy) * n + b2 + dz
+                    weight = state[idx, 1]
+                    if weight > 0.0:
+                        wt = wx * wy * (f2 if dz else 1.0 - f2)
+                        value += wt * state[idx, 0] / weight
+                        cover += wt
+        out_value[p] = value
+        out_cover[p] = cover
