@@ -14,7 +14,7 @@ from h2viz.errors import SourceError
 from h2viz.sources.base import make_source
 from h2viz.sources.synthetic.layout import RECIPE, load_recipe
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _last_frame(recipe: str = "") -> tuple[np.ndarray, np.ndarray]:
