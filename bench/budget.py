@@ -1,7 +1,7 @@
 """Where a mapped run loses quality: PSNR split by image region, and Acc split into the protocol's sampling floor
 and the reconstruction's own error (bench/analysis/budget.py).
 
-Reproduce:  .venv/bin/h2viz map --out /tmp/run --set mapping.threads=2     (the synthetic room; any source works)
+Reproduce:  .venv/bin/h2viz map --out /tmp/run --set mapping.runtime.threads=2   (the synthetic room; any source works)
             .venv/bin/python bench/budget.py /tmp/run [--gt-mesh FILE] [--views 20]
 
 The run's config.yaml rebuilds its source, which is read again (the synthetic room re-renders its frames): the

@@ -5,7 +5,8 @@ on those views; the curve over the steps shows whether the fit has levelled off.
 
 Reproduce:  .venv/bin/python bench/ceiling.py [--datasets synthetic,fountain,redkitchen] [--steps 3000]
                 [--batch 65536] [--loss l2|l1] [--render surface|volume]
-                [--variant mapping.hash_levels=5,mapping.hash_log2_size=21 ...] [--set key=value ...]
+                [--variant mapping.representation.hash_levels=5,mapping.representation.hash_log2_size=21 ...]
+                [--set key=value ...]
 
 --run DIR takes a finished `h2viz map --out DIR` run instead of --datasets: its source and settings, and a first
 row with the run's own colour field scored at the same points, so that what mapping learned and what the
@@ -59,14 +60,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--render", choices=RENDERS, default="surface", help="volume: pixels rendered as mapping does")
     p.add_argument("--variant", action="append", default=[], help="comma-separated overrides: one more fit")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="overrides for every fit")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: mapping.threads)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: mapping.runtime.threads)")
     return p.parse_args(argv)
 
 
 def grid_label(m: MappingConfig) -> str:
     """The colour representation in a few words: levels, finest cell and table size."""
-    finest_mm = 1000 * (m.hash_base_resolution_m or m.voxel_size_m) / m.hash_scale ** (m.hash_levels - 1)
-    return f"L={m.hash_levels}, finest {finest_mm:.3g} mm, T=2^{m.hash_log2_size}"
+    r = m.representation
+    finest_mm = 1000 * (r.hash_base_resolution_m or r.voxel_size_m) / r.hash_scale ** (r.hash_levels - 1)
+    return f"L={r.hash_levels}, finest {finest_mm:.3g} mm, T=2^{r.hash_log2_size}"
 
 
 def load_views(cfg: Config) -> SurfaceColours:
@@ -127,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rows: list[list[str]] = []
     for name, cfg in configs(args):
-        torch.set_num_threads(args.threads or cfg.mapping.threads or torch.get_num_threads())
+        torch.set_num_threads(args.threads or cfg.mapping.runtime.threads or torch.get_num_threads())
         try:
             data = load_views(cfg)
         except H2vizError as err:  # a missing or unreadable source: say which, go on with the others

@@ -44,7 +44,7 @@ def device_name(device: torch.device) -> str:
 
 def run(frames: int, device: str, overrides: list[str]) -> str:
     """Map, mesh and render; returns the markdown report."""
-    cfg = dataset_config(DATASETS["synthetic"], frames, [f"mapping.device={device}", *overrides])
+    cfg = dataset_config(DATASETS["synthetic"], frames, [f"mapping.runtime.device={device}", *overrides])
     mapper = Mapper(cfg.mapping)
     dev = mapper.device
     per_frame, cameras = [], []

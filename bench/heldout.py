@@ -17,7 +17,7 @@ compared on the pixels they all predict.
 
     .venv/bin/python bench/heldout.py                                        # all four sequences, every frame
     .venv/bin/python bench/heldout.py --datasets synthetic --frames 60 --set source.downscale=2 \\
-        --variant l2=mapping.rgb_loss=l2 --images /tmp/heldout               # a quick look, with mosaics
+        --variant l2=mapping.losses.rgb_loss=l2 --images /tmp/heldout               # a quick look, with mosaics
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from bench.common import (  # noqa: E402
     write_doc,
 )
 from bench.tsdf_baseline import TsdfConfig, TsdfFusion  # noqa: E402
-from h2viz.config import Config, apply_overrides, load_config  # noqa: E402
+from h2viz.config import Config, apply_overrides, load_config, parse_yaml  # noqa: E402
 from h2viz.errors import H2vizError  # noqa: E402
 from h2viz.eval.mesh_render import MeshRenderer  # noqa: E402
 from h2viz.eval.metrics import depth_l1_cm, psnr, ssim  # noqa: E402
@@ -242,10 +242,10 @@ class H2vizRun:
         return self.mapper.mesh()
 
     def finish(self) -> None:
-        """mapping.refine_iters more steps after the last frame, as `h2viz map` does."""
+        """mapping.optimization.refine_iters more steps after the last frame, as `h2viz map` does."""
         start = time.perf_counter()
-        if self.cfg.mapping.refine_iters > 0:
-            self.mapper.refine(self.cfg.mapping.refine_iters)
+        if self.cfg.mapping.optimization.refine_iters > 0:
+            self.mapper.refine(self.cfg.mapping.optimization.refine_iters)
         self.refine_s = time.perf_counter() - start
 
 
@@ -286,14 +286,21 @@ class Variant:
 def file_overrides(path: str) -> tuple[str, ...]:
     """The mapping section of a config file (e.g. configs/paper.yaml) as key=value overrides."""
     try:
-        data = yaml.safe_load(Path(path).read_text()) or {}
+        data = parse_yaml(Path(path).read_text()) or {}  # a key given twice is an error
     except (OSError, yaml.YAMLError) as e:
         raise SystemExit(f"--variant: cannot read {path} ({e}); pass a YAML config file") from e
     outside = sorted(set(data) - {"mapping"})
     if outside:
         raise SystemExit(f"--variant: {path} sets {', '.join(outside)}; a variant may only change mapping.*")
     dump = lambda v: yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("...").strip()  # noqa: E731
-    return tuple(f"mapping.{k}={dump(v)}" for k, v in data["mapping"].items())
+
+    def dotted(prefix: str, values: dict) -> list[str]:  # one override a setting: mapping.sampling.free_samples=-1
+        out: list[str] = []
+        for k, v in values.items():
+            out += dotted(f"{prefix}{k}.", v) if isinstance(v, dict) else [f"{prefix}{k}={dump(v)}"]
+        return out
+
+    return tuple(dotted("mapping.", data["mapping"]))
 
 
 def parse_variant(text: str) -> Variant:
@@ -304,7 +311,7 @@ def parse_variant(text: str) -> Variant:
     else:
         overrides = tuple(item.strip() for item in rest.split(",") if item.strip())
     if not name.strip() or not overrides:
-        raise SystemExit(f"--variant {text!r}: write NAME=key=value[,key=value...], e.g. l2=mapping.rgb_loss=l2")
+        raise SystemExit(f"--variant {text!r}: write NAME=key=value[,key=value...], e.g. l2=mapping.losses.rgb_loss=l2")
     if name.strip() in METHODS or name.strip().endswith("-mesh"):
         raise SystemExit(f"--variant {text!r}: the name must differ from {', '.join(METHODS)} and not end in -mesh")
     outside = [o for o in overrides if not o.startswith("mapping.")]
@@ -414,7 +421,7 @@ def feed(
 
 
 def finish_runs(runs: dict[str, Run], notes: dict[str, str]) -> None:
-    """What `h2viz map` does after the last frame (mapping.refine_iters); a run that fails leaves `runs`."""
+    """What `h2viz map` does after the last frame (mapping.optimization.refine_iters); a failed run leaves `runs`."""
     for name, run in list(runs.items()):
         try:
             if isinstance(run, H2vizRun):
@@ -554,8 +561,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         action="append",
         default=[],
         metavar="NAME=KEY=VALUE[,KEY=VALUE]",
-        help="one more h2viz row with these mapping overrides (repeatable), e.g. l2=mapping.rgb_loss=l2, or those "
-        "of a config file's mapping section: paper=@configs/paper.yaml",
+        help="one more h2viz row with these mapping overrides (repeatable), e.g. l2=mapping.losses.rgb_loss=l2, or "
+        "those of a config file's mapping section: paper=@configs/paper.yaml",
     )
     p.add_argument("--variant-mesh", action="store_true", help="also ray cast each variant's mesh (NAME-mesh)")
     p.add_argument("--frames", type=int, default=None, help="at most N frames per sequence, before the split")

@@ -11,7 +11,7 @@ integration (TSDF) times, frame loading and final meshing excluded.
 
     .venv/bin/python bench/quality.py                                      # everything, every frame
     .venv/bin/python bench/quality.py --datasets synthetic --methods h2viz,tsdf --frames 8 \\
-        --set source.downscale=4 --set mapping.max_iters=3                  # a quick look
+        --set source.downscale=4 --set mapping.optimization.max_iters=3                  # a quick look
 """
 
 from __future__ import annotations
@@ -54,11 +54,11 @@ from h2viz.types import RgbdFrame  # noqa: E402
 
 METHODS: dict[str, list[str]] = {
     "h2viz": [],
-    "no-priors": ["mapping.priors=false"],
-    "no-expansion": ["mapping.expansion=false"],
-    "random-kf": ["mapping.keyframe_strategy=random"],
-    "overlap-kf": ["mapping.keyframe_strategy=overlap"],
-    "no-early-end": ["mapping.early_ending=false"],
+    "no-priors": ["mapping.representation.priors=false"],
+    "no-expansion": ["mapping.representation.expansion=false"],
+    "random-kf": ["mapping.keyframes.keyframe_strategy=random"],
+    "overlap-kf": ["mapping.keyframes.keyframe_strategy=overlap"],
+    "no-early-end": ["mapping.optimization.early_ending=false"],
     "tsdf": [],
     "gt": [],
 }

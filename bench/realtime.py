@@ -8,8 +8,8 @@ mapping for the CPU). Rows:
 - `anytime`: real-time mode (`h2viz map --realtime`): every frame integrated as it arrives, optimisation in the
   time between frames; scored at the end of the stream and after a further 10, 30 and 60 s of optimisation over
   the keyframes (fewer when the loss plateaus first: the row says when it settled);
-- `every-frame`: every mapped frame with its mapping.max_iters steps, at whatever pace that takes (the paper's
-  protocol; not real time);
+- `every-frame`: every mapped frame with its mapping.optimization.max_iters steps, at whatever pace that takes
+  (the paper's protocol; not real time);
 - `tsdf`: Open3D TSDF fusion fed from the same real-time stream (frames it is too slow for are dropped).
 
 Each row: frames integrated / arrived, integration time per frame, optimisation steps, mesh Acc / Comp / Comp

@@ -104,7 +104,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=2, help="torch and numba threads")
     parser.add_argument("--map-cache", type=Path, help="load the map from this checkpoint, or build and save it")
     parser.add_argument("--reference", action="store_true", help="also time the exhaustive render at 160x120")
-    parser.add_argument("overrides", nargs="*", help="config overrides, e.g. mapping.priors=false")
+    parser.add_argument("overrides", nargs="*", help="config overrides, e.g. mapping.representation.priors=false")
     return parser.parse_args(argv)
 
 

@@ -47,7 +47,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--width", type=int, default=160, help="image width (height = 3/4 of it)")
     p.add_argument("--stride", type=int, default=1, help="use every k-th frame of the sequence")
     p.add_argument("--sample-every", type=int, default=25, help="frames between two samples")
-    p.add_argument("--budget-mb", type=float, default=32.0, help="mapping.keyframe_budget_mb of the runs")
+    p.add_argument("--budget-mb", type=float, default=32.0, help="mapping.keyframes.keyframe_budget_mb of the runs")
     p.add_argument("--autosave-every", type=int, default=25, help="autosave.every_frames of the runs")
     p.add_argument("--seed", type=int, default=0, help="seed of the frame the crash run is killed at")
     p.add_argument("--no-explore", action="store_true", help="skip the explore run")
@@ -93,7 +93,7 @@ def run_config(args: argparse.Namespace, frames_per_lap: int) -> Config:
         f"source.synthetic.n_frames={frames_per_lap}",
         f"source.stride={args.stride}",
         "source.synthetic.prefetch=0",
-        f"mapping.keyframe_budget_mb={args.budget_mb}",
+        f"mapping.keyframes.keyframe_budget_mb={args.budget_mb}",
         f"autosave.every_frames={args.autosave_every}",
         "autosave.every_s=0",
         *args.set,
@@ -304,7 +304,7 @@ def report(args: argparse.Namespace, runs: dict[str, list[dict[str, Any]]], summ
     total = args.frames // args.stride
     lines.append(
         f"Synthetic room, {args.width}x{args.width * 3 // 4}, {total} frames a run, {CLIENTS} wire-level dashboard "
-        f"clients, mapping.keyframe_budget_mb={args.budget_mb:g}, autosave every {args.autosave_every} frames"
+        f"clients, mapping.keyframes.keyframe_budget_mb={args.budget_mb:g}, autosave every {args.autosave_every} frames"
         + (f", {' '.join(args.set)}" if args.set else "")
         + f". Samples every {args.sample_every} frames; plot: {png.name}."
     )

@@ -34,8 +34,8 @@ from h2viz.config import Config, apply_overrides, dump_config, load_config  # no
 from h2viz.errors import H2vizError  # noqa: E402
 
 METHODS: dict[str, list[str]] = {
-    "h2viz": ["mapping.kernels=auto"],
-    "h2viz-torch": ["mapping.kernels=torch"],
+    "h2viz": ["mapping.runtime.kernels=auto"],
+    "h2viz-torch": ["mapping.runtime.kernels=torch"],
     "tsdf": [],
 }
 """Method -> configuration switches applied after --set. tsdf: Open3D VoxelBlockGrid, 1 cm voxels, CPU."""
@@ -84,9 +84,9 @@ def cells(run: Run) -> list[str]:
 
 def pair_config(ds: Dataset, method: str, args: argparse.Namespace) -> Config:
     """The resolved configuration of one run (MissingData when the dataset is absent)."""
-    overrides = [*BENCH_DEFAULTS, *args.set, *METHODS[method], "mapping.mesh_every=0"]  # meshing is timed here
+    overrides = [*BENCH_DEFAULTS, *args.set, *METHODS[method], "mapping.meshing.mesh_every=0"]  # meshing is timed here
     if args.threads > 0:
-        overrides.append(f"mapping.threads={args.threads}")
+        overrides.append(f"mapping.runtime.threads={args.threads}")
     return dataset_config(ds, args.frames, overrides)
 
 
@@ -104,7 +104,8 @@ def run_pair(ds: Dataset, method: str, args: argparse.Namespace, tmp: Path) -> R
     cmd += ["--gt-mesh", str(gt_mesh) if gt_mesh is not None else ""] + (["--no-quality"] if args.no_quality else [])
     env = dict(os.environ)
     if args.threads > 0:
-        env["OMP_NUM_THREADS"] = str(args.threads)  # Open3D's OpenMP pool (torch and numba follow mapping.threads)
+        # Open3D's OpenMP pool (torch and numba follow mapping.runtime.threads)
+        env["OMP_NUM_THREADS"] = str(args.threads)
     proc = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=False)
     if proc.returncode != 0 or not result_path.is_file():
         tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]

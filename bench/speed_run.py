@@ -183,7 +183,7 @@ def measure(run: Run, cfg: Config, gt_mesh: str, quality: bool) -> None:
         if run.method == "tsdf":  # the method's libraries are loaded before the memory baseline
             import_open3d()
         else:
-            resolve_backend(cfg.mapping.kernels, cfg.mapping.device)  # imports the kernels
+            resolve_backend(cfg.mapping.runtime.kernels, cfg.mapping.runtime.device)  # imports the kernels
         run.start_rss_mb = peak_rss_mb()
         method: H2vizMethod | TsdfMethod = TsdfMethod(cfg) if run.method == "tsdf" else H2vizMethod(cfg)
         run.kernels, run.threads = method.kernels, torch.get_num_threads()

@@ -12,11 +12,11 @@ and after every configuration, each compared with the mean of its two neighbours
 machine's speed drifting between runs.
 
     .venv/bin/python bench/viewer.py                      # synthetic scene, configs/fast.yaml, 20 frames
-    .venv/bin/python bench/viewer.py --frames 40 mapping.max_iters=10
-    .venv/bin/python bench/viewer.py --config '' mapping.threads=2     # the default configuration
-    .venv/bin/python bench/viewer.py --config '' --browsers 0 1 --browser-background mapping.threads=2
+    .venv/bin/python bench/viewer.py --frames 40 mapping.optimization.max_iters=10
+    .venv/bin/python bench/viewer.py --config '' mapping.runtime.threads=2     # the default configuration
+    .venv/bin/python bench/viewer.py --config '' --browsers 0 1 --browser-background mapping.runtime.threads=2
     .venv/bin/python bench/viewer.py --config '' --frames 60 --browsers 1 --remote 1 --browser-background \
-        --no-latency --no-renders --repeat 4 mapping.threads=2
+        --no-latency --no-renders --repeat 4 mapping.runtime.threads=2
 
 Speed runs leave the pages alone; the latency run (one browser) ships page 0's websocket frames to this
 process to time mesh arrivals, which itself costs CPU, so its speed is shown apart. Latency of frame i: from
@@ -540,7 +540,7 @@ def main() -> None:
     parser.add_argument(
         "--config", default=str(ROOT / "configs" / "fast.yaml"), help="config file over the defaults ('' = none)"
     )
-    parser.add_argument("overrides", nargs="*", help="config overrides, e.g. mapping.max_iters=5")
+    parser.add_argument("overrides", nargs="*", help="config overrides, e.g. mapping.optimization.max_iters=5")
     args = parser.parse_args()
     files = [source_config_file("synthetic"), Path(args.config) if args.config else None]
     base = ["source.format=synthetic", "source.stride=4", f"source.max_frames={args.frames}", "viewer.port=0"]

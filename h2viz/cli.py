@@ -32,7 +32,7 @@ def _source_args(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override any config field, e.g. mapping.max_iters=5",
+        help="override any config field, e.g. mapping.optimization.max_iters=5",
     )
 
 
@@ -162,6 +162,7 @@ def cmd_config(args: argparse.Namespace) -> int:
             for f in dataclasses.fields(obj):  # type: ignore[arg-type]
                 value = getattr(obj, f.name)
                 if dataclasses.is_dataclass(value):
+                    print(f"# {prefix}{f.name}: {docs.get(f.name, '')}")
                     walk(value, f"{prefix}{f.name}.")
                 else:
                     print(f"{prefix}{f.name} = {value!r}\n    {docs.get(f.name, '')}")

@@ -1,7 +1,10 @@
 """Configuration: dataclasses with a docstring per field, strict YAML loading, dotted overrides.
 
-Every field is documented by the string literal that follows it (read by `field_docs`). Loading is
-strict: an unknown key is an error that names the key, the file and the closest valid key.
+Every field is documented by the string literal that follows it (read by `field_docs`). `mapping` is grouped by
+stage (mapping.sampling.rays_per_iter); each name is unique across its groups. Loading is strict: an unknown key is
+an error that names the key, the file and the closest valid key, and so is a key given twice in one mapping (which
+PyYAML would silently take the last of). A flat mapping key of earlier versions (mapping.rays_per_iter) is still
+read, with a FutureWarning naming its new place.
 """
 
 from __future__ import annotations
@@ -12,15 +15,19 @@ import difflib
 import inspect
 import textwrap
 import typing
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import resources
 from importlib.resources.abc import Traversable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 
 from h2viz.errors import ConfigError
+
+T = TypeVar("T")
 
 CONFIG_DIR: Traversable = resources.files("h2viz") / "configs"
 """The configuration files shipped inside the package (in a clone, `configs/` at the root is the same folder)."""
@@ -117,7 +124,7 @@ class SourceConfig:
     """Real-time mode: play the frames at their timestamps' own rate (a bag at its recorded rate), integrate every
     frame as it arrives and optimise in the time between frames (anytime.*), counting the frames integration cannot
     keep up with; `h2viz map --realtime` sets it, and the dashboard's Real-time toggle starts from it. Off: every
-    frame is mapped with mapping.max_iters steps, as fast as mapping goes."""
+    frame is mapped with mapping.optimization.max_iters steps, as fast as mapping goes."""
     intrinsics: IntrinsicsConfig = field(default_factory=IntrinsicsConfig)
     """Camera intrinsics where the data has none (Replica) or to override them."""
     depth_scale: float = 0.0
@@ -130,10 +137,31 @@ class SourceConfig:
     """ROS 1 / ROS 2 bag specific options."""
 
 
-@dataclass
-class MappingConfig:
+def _group(cls: Callable[[], T]) -> T:
+    """A group of MappingConfig's settings, holding the group's defaults."""
+    return field(default_factory=cls)
+
+
+@dataclass(slots=True)
+class RuntimeConfig:
+    """Where and how the mapper runs: device, kernels, CPU threads and the random seed."""
+
     device: str = "auto"
     """auto (CUDA when present, else CPU) | cpu | cuda."""
+    kernels: str = "auto"
+    """auto: the fused numba kernels on the CPU (frame rays, samples, hash grids, prior, geometry decoder, rendering
+    and losses) when numba imports, else pure torch; torch: always the pure-torch path (the reference)."""
+    threads: int = 0
+    """torch CPU threads (0 = all cores)."""
+    seed: int = 0
+    """Seed for ray sampling and parameter initialisation."""
+
+
+@dataclass(slots=True)
+class RepresentationConfig:
+    """What the map is made of: octree voxels, SDF priors, the geometry hash grid and decoder
+    (h2viz.mapping.field)."""
+
     voxel_size_m: float = 0.1
     """Edge of an octree leaf voxel."""
     truncation_m: float = 0.05
@@ -149,10 +177,10 @@ class MappingConfig:
     h2viz.mapping.field.fine_prior), which replaces the corner priors wherever frames reached it (false = the paper:
     corner priors written once). Held-out views, docs/heldout.md: +0.5 to +1.4 dB PSNR and 0.15-0.55 cm less depth
     error than the corner priors on all four sequences."""
-    fine_prior_residual: bool = False
-    """With fine priors, the hash-grid residual corrects them too (default false: it corrects only the corner priors,
-    where no frame reached the fine lattice; over fine priors it fattens every silhouette on held-out views, ICL-NUIM
-    27.89 -> 26.83 dB)."""
+    residual_bound: float = 2.0
+    """Largest correction of the prior SDF by the hash grid, in truncation units: residual = b * tanh(r / b)
+    (0 = unbounded; priors off = unbounded). The free-space loss pulls the SDF to tr in front of surfaces, and
+    an unbounded residual carries that pull into unobserved parts of voxels as spurious surfaces."""
     hash_levels: int = 4
     """L: number of hash-grid levels."""
     hash_features: int = 2
@@ -163,22 +191,16 @@ class MappingConfig:
     """Resolution ratio between adjacent levels."""
     hash_base_resolution_m: float = 0.1
     """Cell size of the coarsest level (the leaf voxel size by default)."""
-    color_hash_levels: int = 0
-    """Levels of the colour hash grid (same coarsest cell and scale as the geometry grid's; 0 = hash_levels): each
-    added level is twice as fine, for texture detail finer than the geometry needs."""
-    color_hash_log2_size: int = 0
-    """log2 T of the colour hash grid's tables (0 = hash_log2_size)."""
-    kernels: str = "auto"
-    """auto: the fused numba kernels on the CPU (frame rays, samples, hash grids, prior, geometry decoder, rendering
-    and losses) when numba imports, else pure torch; torch: always the pure-torch path (the reference)."""
     geo_hidden: int = 64
     """Width of the geometry decoder's hidden layer."""
     geo_layers: int = 1
     """Hidden layers of the geometry decoder."""
-    residual_bound: float = 2.0
-    """Largest correction of the prior SDF by the hash grid, in truncation units: residual = b * tanh(r / b)
-    (0 = unbounded; priors off = unbounded). The free-space loss pulls the SDF to tr in front of surfaces, and
-    an unbounded residual carries that pull into unobserved parts of voxels as spurious surfaces."""
+
+
+@dataclass(slots=True)
+class ColorConfig:
+    """The map's colour: colour priors, the colour hash grid and decoder (h2viz.mapping.field)."""
+
     color_prior: bool = True
     """Explicit colour priors: every frame's pixel colours averaged on a fine lattice in each voxel
     (h2viz.mapping.field.color_prior), the colour network learning the residual of their logit, as the hash grid
@@ -187,17 +209,11 @@ class MappingConfig:
     """Lattice cells per voxel edge of the colour priors (12 = 0.83 cm apart at 10 cm voxels); memory grows with
     (cells + 1)^3 x 16 B a voxel: 12 kB at 8, 35 kB at 12, 79 kB at 16 (held-out PSNR, one run: 8 -> 12 gains
     1.1 dB on the synthetic room and 0.4 dB on 7-Scenes redkitchen, 12 -> 16 a further 0.1)."""
-    color_views: int = 8
-    """Rendered colour (dashboard, evaluation, fly-throughs) blends the images of this many stored views nearest
-    the camera where they see the surface point, with lumigraph weights (h2viz.mapping.field.color_views): as sharp as
-    the frames, and view-dependent; the colour field where no view sees it (0 = the colour field alone, the paper).
-    Held-out views, one run: 7-Scenes redkitchen 24.7 -> 29.1 dB. Surface renders only (render_surface)."""
-    color_views_mb: float = 512.0
-    """Memory the stored views may take (1.3 MB a 640x480 view: colour, its half-resolution copy and depth); past
-    it the view nearest another is retired (0 = unbounded)."""
-    color_views_field: float = 0.3
-    """Weight of the colour field's colour in the blend where views see a point: it averages every frame, so it
-    evens out what a few views keep of noise and aliasing (synthetic room +0.8 dB over 0; redkitchen -0.8)."""
+    color_hash_levels: int = 0
+    """Levels of the colour hash grid (same coarsest cell and scale as the geometry grid's; 0 =
+    representation.hash_levels): each added level is twice as fine, for texture detail finer than the geometry needs."""
+    color_hash_log2_size: int = 0
+    """log2 T of the colour hash grid's tables (0 = representation.hash_log2_size)."""
     color_hidden: int = 64
     """Width of the colour decoder's hidden layers."""
     color_layers: int = 2
@@ -205,8 +221,12 @@ class MappingConfig:
     color_precision: str = "auto"
     """Colour decoder matrix products on the CPU: auto = bfloat16 where the CPU has native bfloat16 dot products
     (AVX512-BF16 or AMX; ~2.5x faster, parameters stay float32), else float32; float32 | bfloat16 force one."""
-    max_iters: int = 10
-    """Largest number of optimisation iterations per frame."""
+
+
+@dataclass(slots=True)
+class SamplingConfig:
+    """Where the field is trained: rays per step and the samples along them (h2viz.mapping.sampling)."""
+
     rays_per_iter: int = 4096
     """Rays sampled per iteration across the current frame and selected keyframes."""
     step_m: float = 0.01
@@ -225,13 +245,77 @@ class MappingConfig:
     free_samples: int = 24
     """...plus this many stratified free-space candidates per ray, kept where they fall in allocated voxels
     (-1 = instead sample every step_m of every allocated voxel the ray crosses, as the paper does)."""
+
+
+@dataclass(slots=True)
+class LossesConfig:
+    """What the field is trained on: the four losses and their weights (h2viz.mapping.rendering.losses)."""
+
+    rgb_loss: str = "l2"
+    """Colour loss per ray: l2 = mean squared error, which learns colour faster from the same rays (+0.9 dB PSNR
+    on the synthetic sequence and +0.8 dB on redkitchen_50 with volume-rendered colour); l1 = mean absolute error
+    over the channels (the reference implementation's)."""
+    w_rgb: float = 0.5
+    """Weight of the colour loss."""
+    w_depth: float = 1.0
+    """Weight of the depth L1 loss."""
+    w_fs: float = 10.0
+    """Weight of the free-space loss."""
+    w_sdf: float = 50000.0
+    """Weight of the SDF loss inside the truncation band."""
+    color_supervision: str = "none"
+    """How the colour network is trained: none = not at all, colour is the colour priors' (color.color_prior;
+    measured best on held-out views: the network's residual learned what one view saw and another did not, -0.3 dB on
+    ICL-NUIM and -1.6 dB on redkitchen); surface = the colour field at each ray's measured surface point (camera +
+    depth along the ray) against the pixel's colour, on a batch of its own (experimental.color_rays_per_iter rays,
+    one colour evaluation a ray, none in the geometry batch); volume = the paper's volume-rendered colour of the
+    geometry batch's rays."""
+
+
+@dataclass(slots=True)
+class OptimizationConfig:
+    """How long and how fast the field is trained: steps per frame, learning rate, refinement."""
+
+    max_iters: int = 10
+    """Largest number of optimisation iterations per frame."""
+    lr: float = 1e-2
+    """Adam learning rate for priors, hash tables and decoders."""
+    early_ending: bool = True
+    """Stop a frame's optimisation when the loss exceeds its running mean twice in a row."""
+    refine_iters: int = 0
+    """h2viz map: after the last frame, this many more optimisation steps, each over K + 1 keyframes drawn at
+    random, before meshing and evaluation (0 = none: the paper's online protocol). Sharpens colour and depth of
+    a finished map for export; not counted in the per-frame times."""
+
+
+@dataclass(slots=True)
+class RenderingConfig:
+    """How rendered images are made (dashboard, evaluation, exports; h2viz.mapping.rendering)."""
+
     render_temperature: float = 0.05
     """tau in the rendering weights sigmoid(s/tau)*sigmoid(-s/tau), s in truncation units."""
     render_surface: bool = True
     """Rendered images (dashboard, evaluation, exports) show each ray's first zero crossing of the SDF, with the
-    colour there, under the mesher's rules (mesh_prior_band, mesh_observed_only): silhouettes as sharp as the mesh
-    and nothing drawn where no depth was observed. false = the paper's volume rendering (weighted mean depth and
+    colour there, under the mesher's rules (meshing.mesh_prior_band, mesh_observed_only): silhouettes as sharp as the
+    mesh and nothing drawn where no depth was observed. false = the paper's volume rendering (weighted mean depth and
     colour over the samples near the surface), which smears depth across silhouettes."""
+    color_views: int = 8
+    """Rendered colour (dashboard, evaluation, fly-throughs) blends the images of this many stored views nearest
+    the camera where they see the surface point, with lumigraph weights (h2viz.mapping.field.color_views): as sharp as
+    the frames, and view-dependent; the colour field where no view sees it (0 = the colour field alone, the paper).
+    Held-out views, one run: 7-Scenes redkitchen 24.7 -> 29.1 dB. Surface renders only (render_surface)."""
+    color_views_mb: float = 512.0
+    """Memory the stored views may take (1.3 MB a 640x480 view: colour, its half-resolution copy and depth); past
+    it the view nearest another is retired (0 = unbounded)."""
+    color_views_field: float = 0.3
+    """Weight of the colour field's colour in the blend where views see a point: it averages every frame, so it
+    evens out what a few views keep of noise and aliasing (synthetic room +0.8 dB over 0; redkitchen -0.8)."""
+
+
+@dataclass(slots=True)
+class KeyframesConfig:
+    """Which frames are kept and optimised again (h2viz.mapping.keyframes)."""
+
     n_keyframes: int = 10
     """K: keyframes optimised together with the current frame."""
     keyframe_iou: float = 0.85
@@ -245,35 +329,12 @@ class MappingConfig:
     redundant keyframe whose voxels other keyframes also saw is retired, else the largest one keeps every other
     pixel (down to 1/8), so every voxel stays seen by a keyframe (0 = unbounded). 1024 MB holds ~300 full 640x480
     keyframes."""
-    early_ending: bool = True
-    """Stop a frame's optimisation when the loss exceeds its running mean twice in a row."""
-    refine_iters: int = 0
-    """h2viz map: after the last frame, this many more optimisation steps, each over K + 1 keyframes drawn at
-    random, before meshing and evaluation (0 = none: the paper's online protocol). Sharpens colour and depth of
-    a finished map for export; not counted in the per-frame times."""
-    lr: float = 1e-2
-    """Adam learning rate for priors, hash tables and decoders."""
-    w_rgb: float = 0.5
-    """Weight of the colour loss."""
-    color_supervision: str = "none"
-    """How the colour network is trained: none = not at all, colour is the colour priors' (color_prior; measured best
-    on held-out views: the network's residual learned what one view saw and another did not, -0.3 dB on ICL-NUIM
-    and -1.6 dB on redkitchen); surface = the colour field at each ray's measured surface point (camera + depth
-    along the ray) against the pixel's colour, on a batch of its own (color_rays_per_iter rays, one colour
-    evaluation a ray, none in the geometry batch); volume = the paper's volume-rendered colour of the geometry
-    batch's rays."""
-    color_rays_per_iter: int = 16384
-    """Rays of the colour batch per iteration with color_supervision: surface."""
-    rgb_loss: str = "l2"
-    """Colour loss per ray: l2 = mean squared error, which learns colour faster from the same rays (+0.9 dB PSNR
-    on the synthetic sequence and +0.8 dB on redkitchen_50 with volume-rendered colour); l1 = mean absolute error
-    over the channels (the reference implementation's)."""
-    w_depth: float = 1.0
-    """Weight of the depth L1 loss."""
-    w_fs: float = 10.0
-    """Weight of the free-space loss."""
-    w_sdf: float = 50000.0
-    """Weight of the SDF loss inside the truncation band."""
+
+
+@dataclass(slots=True)
+class MeshingConfig:
+    """The mesh extracted from the field (h2viz.mapping.meshing)."""
+
     mesh_resolution: int = 8
     """Marching-cubes samples per leaf voxel edge."""
     mesh_prior_band: float = 3.0
@@ -293,10 +354,71 @@ class MappingConfig:
     mesh_every: int = 0
     """Headless runs: re-extract changed mesh chunks every this many frames (0 = only at the end; the
     dashboard meshes at its own rate, viewer.mesh_update_hz)."""
-    seed: int = 0
-    """Seed for ray sampling and parameter initialisation."""
-    threads: int = 0
-    """torch CPU threads (0 = all cores)."""
+
+
+@dataclass(slots=True)
+class ExperimentalConfig:
+    """Settings kept to reproduce measurements of alternatives that lost; the defaults are the measured best, and
+    nothing here is meant to be turned in normal use."""
+
+    fine_prior_residual: bool = False
+    """With fine priors, the hash-grid residual corrects them too (default false: it corrects only the corner priors,
+    where no frame reached the fine lattice; over fine priors it fattens every silhouette on held-out views, ICL-NUIM
+    27.89 -> 26.83 dB)."""
+    color_rays_per_iter: int = 16384
+    """Rays of the colour batch per iteration with losses.color_supervision: surface."""
+
+
+@dataclass(slots=True)
+class MappingConfig:
+    """H2-Mapping's settings, by stage. A key's name is unique across the groups (`updated` sets fields by name)."""
+
+    runtime: RuntimeConfig = _group(RuntimeConfig)
+    """Device, kernels, threads and seed."""
+    representation: RepresentationConfig = _group(RepresentationConfig)
+    """Voxels, SDF priors, the geometry hash grid and decoder."""
+    color: ColorConfig = _group(ColorConfig)
+    """Colour priors, the colour hash grid and decoder."""
+    sampling: SamplingConfig = _group(SamplingConfig)
+    """Training rays and samples."""
+    losses: LossesConfig = _group(LossesConfig)
+    """Loss terms and weights."""
+    optimization: OptimizationConfig = _group(OptimizationConfig)
+    """Optimisation steps, learning rate, refinement."""
+    rendering: RenderingConfig = _group(RenderingConfig)
+    """Rendered images: volume or surface, colour from stored views."""
+    keyframes: KeyframesConfig = _group(KeyframesConfig)
+    """Keyframe insertion, selection and memory budget."""
+    meshing: MeshingConfig = _group(MeshingConfig)
+    """Mesh extraction."""
+    experimental: ExperimentalConfig = _group(ExperimentalConfig)
+    """Alternatives that measured worse, kept for reproducing those measurements."""
+
+    def updated(self, **fields: Any) -> MappingConfig:
+        """A copy with the named fields changed, each found in its group: `cfg.updated(voxel_size_m=0.05,
+        max_iters=3)`. TypeError names a field that no group has."""
+        groups = {name: dataclasses.replace(getattr(self, name)) for name in _GROUP_NAMES}
+        for name, value in fields.items():
+            group = mapping_group(name)
+            if group is None:
+                raise TypeError(f"MappingConfig has no field {name!r}{_closest(name, sorted(_FIELD_GROUPS))}")
+            setattr(groups[group], name, value)
+        return MappingConfig(**groups)
+
+
+def _group_fields() -> dict[str, str]:
+    hints = typing.get_type_hints(MappingConfig)
+    return {f.name: g.name for g in dataclasses.fields(MappingConfig) for f in dataclasses.fields(hints[g.name])}
+
+
+_GROUP_NAMES = tuple(f.name for f in dataclasses.fields(MappingConfig))
+_FIELD_GROUPS = _group_fields()
+"""Each mapping field's group: {"voxel_size_m": "representation", ...} (the names are unique across the groups)."""
+
+
+def mapping_group(name: str) -> str | None:
+    """The group of MappingConfig that holds field `name` (None when no group has it)."""
+    return _FIELD_GROUPS.get(name)
 
 
 @dataclass
@@ -337,7 +459,7 @@ class ViewerConfig:
     """Width of refined novel-view renders (moving renders use a quarter)."""
     live_mesh_resolution: int = 4
     """Marching-cubes samples per leaf voxel edge of the live mesh (2.5 cm cells: a quarter of the triangles
-    and an eighth of the field evaluations of mapping.mesh_resolution = 8, which mesh downloads use)."""
+    and an eighth of the field evaluations of mapping.meshing.mesh_resolution = 8, which mesh downloads use)."""
     start_paused: bool = False
     """Open with mapping paused."""
     record_fps: float = 10.0
@@ -390,7 +512,7 @@ class Config:
     source: SourceConfig = field(default_factory=SourceConfig)
     """Where frames come from."""
     mapping: MappingConfig = field(default_factory=MappingConfig)
-    """H2-Mapping parameters (paper defaults)."""
+    """H2-Mapping's settings, grouped by stage (configs/paper.yaml: the paper's own)."""
     eval: EvalConfig = field(default_factory=EvalConfig)
     """Evaluation against ground truth."""
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
@@ -421,9 +543,25 @@ def field_docs(cls: type) -> dict[str, str]:
 # ------------------------------------------------------------------------------------------ loading
 
 
-def _closest(key: str, valid: list[str]) -> str:
-    match = difflib.get_close_matches(key, valid, n=1, cutoff=0.4)
-    return f"; did you mean '{match[0]}'?" if match else f"; valid keys: {', '.join(sorted(valid))}"
+def _closest(key: str, valid: list[str], nested: dict[str, str] | None = None, prefix: str = "") -> str:
+    """A hint for an unknown key: the closest valid key, or the closest field of a group below (`nested`: each such
+    field's name -> its dotted path, e.g. voxel_size_m -> mapping.representation.voxel_size_m); `prefix` is the
+    dotted path of the valid keys' level."""
+    nested = nested or {}
+    match = difflib.get_close_matches(key, [*valid, *nested], n=1, cutoff=0.4)
+    if match:
+        return f"; did you mean '{nested.get(match[0], prefix + match[0])}'?"
+    return f"; valid keys: {', '.join(sorted(valid))}"
+
+
+def _nested_fields(obj: Any, prefix: str) -> dict[str, str]:
+    """The fields of the dataclasses held by dataclass `obj`, by name -> dotted path (one level down)."""
+    return {
+        f.name: f"{prefix}{group.name}.{f.name}"
+        for group in dataclasses.fields(obj)
+        if dataclasses.is_dataclass(getattr(obj, group.name))
+        for f in dataclasses.fields(getattr(obj, group.name))
+    }
 
 
 def _coerce(value: Any, typ: Any, where: str) -> Any:
@@ -462,21 +600,72 @@ def _coerce(value: Any, typ: Any, where: str) -> Any:
     raise ConfigError(f"{where}: unsupported field type {typ}")
 
 
-def _merge(obj: Any, data: dict[str, Any], origin: str, prefix: str = "") -> None:
-    """Write `data` into dataclass `obj` in place, strictly; `origin` names the file or override."""
+def _merge(obj: Any, data: dict[str, Any], origin: str, prefix: str = "", moved: list[str] | None = None) -> None:
+    """Write `data` into dataclass `obj` in place, strictly; `origin` names the file or override. A mapping key of
+    the flat layout before the groups (mapping.color_views) is written to its group's field and listed in `moved` as
+    "old -> new" (an error when `moved` is None)."""
     if not isinstance(data, dict):
         raise ConfigError(f"{origin}: '{prefix or '<top>'}' must be a mapping of keys to values, got {data!r}")
     hints = typing.get_type_hints(type(obj))
     names = [f.name for f in dataclasses.fields(obj)]
     for key, value in data.items():
         dotted = f"{prefix}{key}"
+        group = mapping_group(str(key)) if isinstance(obj, MappingConfig) else None
+        if key not in names and group is not None:
+            new = f"{prefix}{group}.{key}"
+            if moved is None:
+                raise ConfigError(f"{origin}: '{dotted}' is now '{new}'")
+            moved.append(f"{dotted} -> {new}")
+            _merge(obj, {group: {key: value}}, origin, prefix, moved)
+            continue
         if key not in names:
-            raise ConfigError(f"{origin}: unknown key '{dotted}'{_closest(str(key), names)}")
+            hint = _closest(str(key), names, _nested_fields(obj, prefix), prefix)
+            raise ConfigError(f"{origin}: unknown key '{dotted}'{hint}")
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current):
-            _merge(current, value or {}, origin, f"{dotted}.")
+            _merge(current, value or {}, origin, f"{dotted}.", moved)
         else:
             setattr(obj, key, _coerce(value, hints[key], f"{origin}: {dotted}"))
+
+
+def _merge_warning_moved(obj: Any, data: dict[str, Any], origin: str) -> None:
+    """_merge, with one FutureWarning per file or override that still uses flat mapping keys."""
+    moved: list[str] = []
+    _merge(obj, data, origin, moved=moved)
+    if moved:
+        warnings.warn(
+            f"{origin}: mapping's settings are grouped now; read as {', '.join(moved)}. Flat keys will stop "
+            "working in a later version: write the new keys (h2viz config --docs lists them)",
+            FutureWarning,
+            stacklevel=3,
+        )
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """yaml.safe_load that refuses a key repeated within one mapping (PyYAML keeps the last one silently)."""
+
+
+class _RepeatedKey(yaml.YAMLError):
+    pass
+
+
+def _mapping_without_repeats(loader: _StrictLoader, node: yaml.MappingNode) -> dict[Any, Any]:
+    lines: dict[Any, int] = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node)  # type: ignore[no-untyped-call]
+        line = key_node.start_mark.line + 1
+        if key in lines:
+            raise _RepeatedKey(f"key '{key}' is repeated (lines {lines[key]} and {line}); keep one of them")
+        lines[key] = line
+    return loader.construct_mapping(node)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_without_repeats)
+
+
+def parse_yaml(text: str) -> Any:
+    """yaml.safe_load, except that a key repeated within one mapping is a yaml.YAMLError."""
+    return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 (a SafeLoader)
 
 
 def load_yaml(path: str | Path | Traversable) -> dict[str, Any]:
@@ -484,7 +673,9 @@ def load_yaml(path: str | Path | Traversable) -> dict[str, Any]:
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist; pass an existing YAML file to --config")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = parse_yaml(path.read_text()) or {}
+    except _RepeatedKey as e:
+        raise ConfigError(f"{path}: {e}") from e
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: not valid YAML ({e})") from e
     if not isinstance(data, dict):
@@ -493,22 +684,27 @@ def load_yaml(path: str | Path | Traversable) -> dict[str, Any]:
 
 
 def apply_file(cfg: Config, path: str | Path | Traversable) -> Config:
-    """Merge one YAML file into `cfg` (strict: unknown keys are errors naming the file)."""
-    _merge(cfg, load_yaml(path), str(path))
+    """Merge one YAML file into `cfg` (strict: unknown and repeated keys are errors naming the file)."""
+    _merge_warning_moved(cfg, load_yaml(path), str(path))
     return cfg
 
 
 def apply_overrides(cfg: Config, overrides: list[str]) -> Config:
-    """Apply `section.key=value` overrides, e.g. `mapping.max_iters=5`."""
+    """Apply `section.key=value` overrides, e.g. `mapping.optimization.max_iters=5`."""
     for item in overrides:
         if "=" not in item:
-            raise ConfigError(f"override '{item}' must look like section.key=value, e.g. mapping.max_iters=5")
+            raise ConfigError(
+                f"override '{item}' must look like section.key=value, e.g. mapping.optimization.max_iters=5"
+            )
         dotted, raw = item.split("=", 1)
         parts = dotted.strip().split(".")
-        nested: Any = yaml.safe_load(raw) if raw.strip() else ""
+        try:
+            nested: Any = parse_yaml(raw) if raw.strip() else ""
+        except yaml.YAMLError as e:
+            raise ConfigError(f"override '{item}': the value is not valid YAML ({e})") from e
         for part in reversed(parts):
             nested = {part: nested}
-        _merge(cfg, nested, f"override '{item}'")
+        _merge_warning_moved(cfg, nested, f"override '{item}'")
     return cfg
 
 
@@ -553,6 +749,14 @@ def dump_config(cfg: Config, path: str | Path) -> None:
 def from_dict(data: dict[str, Any]) -> Config:
     cfg = Config()
     _merge(cfg, data, "config")
+    return cfg
+
+
+def mapping_from_dict(data: dict[str, Any], origin: str = "checkpoint") -> MappingConfig:
+    """The MappingConfig of `to_dict(cfg.mapping)`, or of the flat layout that came before the groups (checkpoints
+    written by earlier versions), strictly otherwise."""
+    cfg = MappingConfig()
+    _merge(cfg, data, origin, "mapping.", moved=[])
     return cfg
 
 

@@ -40,7 +40,7 @@ class RunResult:
     metrics: dict[str, Any] = field(default_factory=dict)
     skipped: int = 0
     dropped: int = 0  # real-time mode: frames integration could not keep up with
-    refine_s: float = 0.0  # seconds of mapping.refine_iters steps after the last frame
+    refine_s: float = 0.0  # seconds of mapping.optimization.refine_iters steps after the last frame
     record_s: float = 0.0  # seconds the recording cost the run (meshing every frame, handing over steps)
     errors: list[str] = field(default_factory=list)  # failures met on the way (the run kept what was mapped)
     resumed_from: Path | None = None
@@ -61,7 +61,7 @@ class RunResult:
             lines.append(f"resumed from {self.resumed_from}")
         lines += [f"problem: {e}" for e in self.errors]
         if self.refine_s > 0:
-            lines.append(f"refined the map for {self.refine_s:.1f} s (mapping.refine_iters)")
+            lines.append(f"refined the map for {self.refine_s:.1f} s (mapping.optimization.refine_iters)")
         if self.metrics:
             lines.append(format_table(self.metrics))
         lines.append(f"outputs in {self.out_dir}")
@@ -165,10 +165,10 @@ def run_map(
         last_index = stats[-1].index if stats else last_index
     else:
         last_index = _map_stream(mapper, source, eval_frames, stats, last_index, autosave, errors, progress, recorder)
-    refine_s = _refine(mapper, cfg.mapping.refine_iters, progress)
+    refine_s = _refine(mapper, cfg.mapping.optimization.refine_iters, progress)
     if recorder is not None:
         recorder.finish()
-        mapper.mesh_resolution = cfg.mapping.mesh_resolution  # the written mesh at its own resolution
+        mapper.mesh_resolution = cfg.mapping.meshing.mesh_resolution  # the written mesh at its own resolution
     mapper.update_mesh()
     mesh = mapper.mesh()
     _save_outputs(mapper, out, last_index, stats, errors)
@@ -317,7 +317,7 @@ def _read_mapped(source: FrameSource, last_index: int, eval_frames: EvalFrames) 
 
 
 def _refine(mapper: Mapper, iterations: int, progress: bool) -> float:
-    """mapping.refine_iters more steps over the keyframes after the last frame; their seconds."""
+    """mapping.optimization.refine_iters more steps over the keyframes after the last frame; their seconds."""
     if iterations <= 0:
         return 0.0
     start = time.perf_counter()

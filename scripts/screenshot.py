@@ -2,7 +2,7 @@
 it in headless chromium, waits until the given number of frames is mapped, and saves the page.
 
     .venv/bin/python scripts/screenshot.py                       # docs/dashboard.png after 120 frames
-    .venv/bin/python scripts/screenshot.py --frames 60 --out /tmp/shot.png mapping.max_iters=5
+    .venv/bin/python scripts/screenshot.py --frames 60 --out /tmp/shot.png mapping.optimization.max_iters=5
 
 Needs the test extras (Playwright) and Debian's chromium, as `bash scripts/test.sh` installs them.
 """

@@ -26,7 +26,8 @@ def _free_port() -> int:
 def test_app_serves_the_dashboard_on_the_port_its_flag_names(tmp_path: Path) -> None:
     port = _free_port()
     cmd = [sys.executable, str(ROOT / "app.py"), "--port", str(port), "--frames", "2", "viewer.start_paused=true",
-           "source.synthetic.width=96", "source.synthetic.height=72", "mapping.hash_log2_size=14"]  # fmt: skip
+           "source.synthetic.width=96", "source.synthetic.height=72",
+           "mapping.representation.hash_log2_size=14"]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -59,6 +60,9 @@ def test_app_flags_and_bare_overrides_resolve_like_h2viz_view(monkeypatch: pytes
     assert args.set == ["viewer.render_width=320", "viewer.render_width=480"]
     cfg, expected = build_config(args), build_config(view)
     assert cfg == expected and cfg.viewer.port == 8081 and cfg.viewer.render_width == 480 and cfg.source.realtime
-    assert cfg.source.format == "synthetic" and cfg.mapping.keyframe_iou == expected.mapping.keyframe_iou
+    assert (
+        cfg.source.format == "synthetic"
+        and cfg.mapping.keyframes.keyframe_iou == expected.mapping.keyframes.keyframe_iou
+    )
     with pytest.raises(SystemExit):
         app_main(["--prot", "8081"])

@@ -14,9 +14,10 @@ from h2viz.cli import main
 
 TINY = [
     "--set", "source.synthetic.width=96", "--set", "source.synthetic.height=72",
-    "--set", "source.synthetic.n_frames=80", "--set", "mapping.min_points_per_voxel=1",
-    "--set", "mapping.hash_log2_size=15", "--set", "mapping.rays_per_iter=1024", "--set", "mapping.max_iters=5",
-    "--set", "mapping.device=cpu", "--set", "eval.n_points=20000", "--set", "eval.n_interpolate=3",
+    "--set", "source.synthetic.n_frames=80", "--set", "mapping.representation.min_points_per_voxel=1",
+    "--set", "mapping.representation.hash_log2_size=15", "--set", "mapping.sampling.rays_per_iter=1024", "--set",
+    "mapping.optimization.max_iters=5",
+    "--set", "mapping.runtime.device=cpu", "--set", "eval.n_points=20000", "--set", "eval.n_interpolate=3",
     "--set", "eval.n_extrapolate=2", "--set", "eval.render_downscale=1",
 ]  # fmt: skip
 
@@ -33,7 +34,7 @@ def test_map_writes_mesh_checkpoint_config_stats_and_metrics(run_dir: Path) -> N
     assert len(mesh.faces) > 1000 and mesh.visual.vertex_colors.shape[0] == len(mesh.vertices)
     assert (run_dir / "checkpoint.pt").is_file()
     cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
-    assert cfg["mapping"]["max_iters"] == 5 and cfg["source"]["format"] == "synthetic"
+    assert cfg["mapping"]["optimization"]["max_iters"] == 5 and cfg["source"]["format"] == "synthetic"
     stats = json.loads((run_dir / "stats.json").read_text())
     frames = stats["frames"]
     assert [f["index"] for f in frames] == [0, 10, 20, 30, 40, 50]
@@ -62,7 +63,7 @@ def test_resume_continues_after_the_last_frame(run_dir: Path, tmp_path: Path) ->
 def test_refinement_runs_after_the_last_frame_and_is_timed_apart(run_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "refined"
     args = ["map", "--frames", "6", "--stride", "10", "--out", str(out), "-q", *TINY]
-    assert main([*args, "--set", "mapping.refine_iters=20"]) == 0
+    assert main([*args, "--set", "mapping.optimization.refine_iters=20"]) == 0
     stats = json.loads((out / "stats.json").read_text())
     plain = json.loads((run_dir / "stats.json").read_text())
     assert stats["summary"]["refine_s"] > 0 and plain["summary"]["refine_s"] == 0
@@ -147,4 +148,5 @@ def test_unknown_config_key_is_a_clear_error(tmp_path: Path, capsys: pytest.Capt
 def test_config_docs_lists_every_field(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["config", "--docs"]) == 0
     out = capsys.readouterr().out
-    assert "mapping.voxel_size_m = 0.1" in out and "Edge of an octree leaf voxel." in out
+    assert "mapping.representation.voxel_size_m = 0.1" in out and "Edge of an octree leaf voxel." in out
+    assert "# mapping.sampling: Training rays and samples." in out  # each group says what it holds

@@ -14,12 +14,14 @@ from h2viz.config import (
     CONFIG_DIR,
     SOURCE_CONFIGS,
     Config,
+    MappingConfig,
     apply_file,
     apply_overrides,
     dump_config,
     field_docs,
     from_dict,
     load_config,
+    mapping_from_dict,
     packaged_config,
     source_config_file,
     to_dict,
@@ -36,28 +38,73 @@ def test_unknown_key_names_the_key_the_file_and_the_closest_valid_key(tmp_path: 
     assert "voxel_sise_m" in msg and str(f) in msg and "voxel_size_m" in msg
 
 
+def test_a_misplaced_or_misspelt_key_is_pointed_to_its_group(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="did you mean 'mapping.representation.voxel_size_m'"):
+        apply_overrides(Config(), ["mapping.representation.voxel_sise_m=0.05"])
+    with pytest.raises(ConfigError, match="did you mean 'mapping.sampling.rays_per_iter'"):
+        apply_overrides(Config(), ["mapping.rays_per_iters=1024"])
+
+
+def test_a_key_repeated_in_one_mapping_is_an_error_naming_the_file_and_the_key(tmp_path: Path) -> None:
+    f = tmp_path / "twice.yaml"
+    f.write_text("mapping:\n  rendering:\n    color_views: 0\n    render_surface: false\n    color_views: 4\n")
+    with pytest.raises(ConfigError, match=r"twice\.yaml: key 'color_views' is repeated \(lines 3 and 5\)"):
+        load_config([f])
+    f.write_text("mapping:\n  rendering: {color_views: 0}\nsource: {downscale: 2}\n")  # the same name in two mappings
+    assert load_config([f]).mapping.rendering.color_views == 0
+
+
+def test_the_flat_mapping_keys_of_earlier_versions_still_load_with_a_warning_naming_the_new_key(
+    tmp_path: Path,
+) -> None:
+    f = tmp_path / "old.yaml"
+    f.write_text("mapping:\n  color_views: 3\n  max_iters: 4\n")
+    with pytest.warns(FutureWarning) as seen:
+        cfg = load_config([f], ["mapping.rays_per_iter=512"])
+    said = [str(w.message) for w in seen]
+    assert any(str(f) in m and "mapping.color_views -> mapping.rendering.color_views" in m for m in said)
+    assert any("mapping.rays_per_iter -> mapping.sampling.rays_per_iter" in m for m in said)
+    assert cfg.mapping.rendering.color_views == 3 and cfg.mapping.optimization.max_iters == 4
+    assert cfg.mapping.sampling.rays_per_iter == 512
+    with pytest.raises(ConfigError, match="unknown key 'mapping.colour_views'"):
+        apply_overrides(Config(), ["mapping.colour_views=3"])  # not a key of either layout
+
+
+def test_a_checkpoints_mapping_settings_load_in_either_layout() -> None:
+    cfg = MappingConfig().updated(voxel_size_m=0.05, max_iters=3, color_views=2)
+    assert cfg.representation.voxel_size_m == 0.05 and cfg.optimization.max_iters == 3
+    assert mapping_from_dict(to_dict(cfg)) == cfg
+    flat = {name: value for group in to_dict(cfg).values() for name, value in group.items()}
+    assert mapping_from_dict(flat) == cfg  # written before the groups, read without a warning
+    with pytest.raises(TypeError, match="voxel_size_m"):
+        cfg.updated(voxel_sise_m=0.05)
+    with pytest.raises(AttributeError):
+        cfg.max_iters = 5  # type: ignore[attr-defined]  # a flat name would be silently ignored otherwise
+
+
 def test_unknown_section_and_wrong_types_are_errors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="did you mean 'mapping'"):
         apply_overrides(Config(), ["maping.max_iters=3"])
     with pytest.raises(ConfigError, match="expected an integer"):
-        apply_overrides(Config(), ["mapping.max_iters=lots"])
+        apply_overrides(Config(), ["mapping.optimization.max_iters=lots"])
     with pytest.raises(ConfigError, match="true/false"):
-        apply_overrides(Config(), ["mapping.priors=maybe"])
+        apply_overrides(Config(), ["mapping.representation.priors=maybe"])
     f = tmp_path / "list.yaml"
     f.write_text("- 1\n- 2\n")
     with pytest.raises(ConfigError, match="top level"):
         load_config([f])
     with pytest.raises(ConfigError, match="section.key=value"):
-        apply_overrides(Config(), ["mapping.max_iters"])
+        apply_overrides(Config(), ["mapping.optimization.max_iters"])
 
 
 def test_overrides_files_then_command_line(tmp_path: Path) -> None:
     f = tmp_path / "a.yaml"
-    f.write_text("mapping:\n  max_iters: 4\n  rays_per_iter: 1024\nsource:\n  synthetic:\n    width: 320\n")
+    mapping = "mapping:\n  optimization: {max_iters: 4}\n  sampling: {rays_per_iter: 1024}\n"
+    f.write_text(mapping + "source:\n  synthetic:\n    width: 320\n")
     cfg = load_config(
-        [f], ["mapping.max_iters=7", "source.rosbag.T_body_camera=[1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1]"]
+        [f], ["mapping.optimization.max_iters=7", "source.rosbag.T_body_camera=[1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1]"]
     )
-    assert cfg.mapping.max_iters == 7 and cfg.mapping.rays_per_iter == 1024
+    assert cfg.mapping.optimization.max_iters == 7 and cfg.mapping.sampling.rays_per_iter == 1024
     assert cfg.source.synthetic.width == 320
     assert len(cfg.source.rosbag.T_body_camera) == 16
 
@@ -87,7 +134,7 @@ def test_every_shipped_config_file_loads() -> None:
 
 
 def test_resolved_config_round_trips(tmp_path: Path) -> None:
-    cfg = load_config(overrides=["mapping.voxel_size_m=0.2", "viewer.port=9000"])
+    cfg = load_config(overrides=["mapping.representation.voxel_size_m=0.2", "viewer.port=9000"])
     dump_config(cfg, tmp_path / "config.yaml")
     again = load_config([tmp_path / "config.yaml"])
     assert again == cfg
@@ -111,8 +158,9 @@ def test_the_configs_ship_inside_the_package_and_configs_in_a_clone_is_the_same_
     monkeypatch.chdir(ROOT)
     cfg = build_config(args)
     paper = yaml.safe_load((ROOT / "configs" / "paper.yaml").read_text())
-    for key, value in paper["mapping"].items():
-        assert getattr(cfg.mapping, key) == value, key
+    for group, values in paper["mapping"].items():
+        for key, value in values.items():
+            assert getattr(getattr(cfg.mapping, group), key) == value, f"{group}.{key}"
 
 
 def test_a_missing_packaged_config_is_an_error_that_says_to_reinstall(

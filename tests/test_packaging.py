@@ -72,9 +72,10 @@ def test_the_installed_wheel_maps_a_replica_folder_with_the_replica_config(insta
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     where = _run([str(installed / "python"), "-c", "import h2viz, sys; print(h2viz.__file__)"], elsewhere, env)
     assert str(installed.parent) in where and str(ROOT) not in where  # the wheel's copy, not this checkout
-    tiny = ["--set", "mapping.kernels=torch", "--set", "mapping.device=cpu", "--set", "mapping.hash_log2_size=12",
-            "--set", "mapping.min_points_per_voxel=1", "--set", "mapping.rays_per_iter=256",
-            "--set", "mapping.max_iters=2", "--set", "eval.n_interpolate=0",
+    tiny = ["--set", "mapping.runtime.kernels=torch", "--set", "mapping.runtime.device=cpu", "--set",
+            "mapping.representation.hash_log2_size=12",
+            "--set", "mapping.representation.min_points_per_voxel=1", "--set", "mapping.sampling.rays_per_iter=256",
+            "--set", "mapping.optimization.max_iters=2", "--set", "eval.n_interpolate=0",
             "--set", "eval.n_extrapolate=0"]  # fmt: skip
     _run([str(installed / "h2viz"), "map", "--data", str(data), "--out", "run", "-q", *tiny], elsewhere, env)
     cfg = yaml.safe_load((elsewhere / "run" / "config.yaml").read_text())

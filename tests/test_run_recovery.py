@@ -21,7 +21,7 @@ from h2viz.mapping.mapper import Mapper
 from h2viz.sources.synthetic import SyntheticSource
 from tests.test_cli import TINY
 
-FAST = [*TINY, "--set", "eval.n_points=2000", "--set", "mapping.max_iters=2", "-q"]
+FAST = [*TINY, "--set", "eval.n_points=2000", "--set", "mapping.optimization.max_iters=2", "-q"]
 
 
 def map_args(out: Path, frames: int, every: int = 2) -> list[str]:

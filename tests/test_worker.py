@@ -364,7 +364,7 @@ def test_real_mapper_on_real_data(make_worker: Factory, shared_dataset: Callable
     cfg.source.path = str(shared_dataset("redkitchen_50"))
     cfg.source.max_frames, cfg.source.downscale = 3, 4
     source = make_source(cfg.source)
-    mcfg = replace(tiny_mapping_config(), voxel_size_m=0.1, truncation_m=0.05, step_m=0.02, max_iters=4)
+    mcfg = tiny_mapping_config().updated(voxel_size_m=0.1, truncation_m=0.05, step_m=0.02, max_iters=4)
     worker = make_worker(source, recording_mapper(mcfg), cfg=cfg, stride=5)
     assert worker.wait_finished(120) and not worker.errors
     snap = worker.slot.get()[1]

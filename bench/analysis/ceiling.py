@@ -78,8 +78,8 @@ class CeilingPoint:
 def colour_field(cfg: MappingConfig) -> HybridField:
     """The mapping's field for `cfg` on the CPU (with the kernels `cfg.kernels` picks); only its colour grid and
     decoder are used here."""
-    torch.manual_seed(cfg.seed)
-    return HybridField(cfg, resolve_backend(cfg.kernels, "cpu"))
+    torch.manual_seed(cfg.runtime.seed)
+    return HybridField(cfg, resolve_backend(cfg.runtime.kernels, "cpu"))
 
 
 @torch.no_grad()
@@ -104,14 +104,15 @@ def volume_colour(
     around the surface, weighted by the projective SDF along the ray, colour read where the weights matter."""
     dist = torch.linalg.norm(points - origins, dim=1, keepdim=True)  # (B,1)
     dirs = (points - origins) / dist  # (B,3)
-    n = int(round(2 * cfg.truncation_m / cfg.step_m)) + 1
-    offset = torch.rand(len(points), 1, generator=rng) * cfg.step_m  # (B,1)
-    t = dist - cfg.truncation_m + offset + cfg.step_m * torch.arange(n, dtype=torch.float32)  # (B,n)
+    n = int(round(2 * cfg.representation.truncation_m / cfg.sampling.step_m)) + 1
+    offset = torch.rand(len(points), 1, generator=rng) * cfg.sampling.step_m  # (B,1)
+    tr, step = cfg.representation.truncation_m, cfg.sampling.step_m
+    t = dist - tr + offset + step * torch.arange(n, dtype=torch.float32)  # (B,n)
     ray = torch.arange(len(points)).repeat_interleave(n)  # (B*n,)
     xyz = (origins[:, None] + t[..., None] * dirs[:, None]).reshape(-1, 3)  # (B*n,3)
     samples = Samples(xyz, t.reshape(-1), ray, torch.zeros_like(ray), len(points))
-    sdf = ((dist - t) / cfg.truncation_m).reshape(-1)  # (B*n,) truncation units
-    weights = render_weights(samples, sdf, cfg.truncation_m, cfg.render_temperature)
+    sdf = ((dist - t) / cfg.representation.truncation_m).reshape(-1)  # (B*n,) truncation units
+    weights = render_weights(samples, sdf, cfg.representation.truncation_m, cfg.rendering.render_temperature)
     live = live_samples(samples, weights)
     return composite(samples, weights, field.color(xyz[live]), live).rgb
 
@@ -144,10 +145,10 @@ def fit_colour_ceiling(
     _check_fit(steps, batch, n_reports, loss, render)
     field = colour_field(cfg)
     params = [*field.color_grid.parameters(), *field.color_mlp.parameters()]
-    optim = torch.optim.Adam(params, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    optim = torch.optim.Adam(params, lr=cfg.optimization.lr, betas=(0.9, 0.99), eps=1e-15)
     points, rgb = torch.from_numpy(data.points), torch.from_numpy(data.rgb)
     origins = torch.from_numpy(data.origins)[torch.from_numpy(data.view)]  # (N,3)
-    rng = torch.Generator().manual_seed(cfg.seed)
+    rng = torch.Generator().manual_seed(cfg.runtime.seed)
     report_at = {max(1, round(steps * (k + 1) / n_reports)) for k in range(n_reports)}
     curve: list[CeilingPoint] = []
     for step in range(1, steps + 1):

@@ -1,11 +1,11 @@
-"""Which implementation each mapping stage runs, chosen once per mapper from `mapping.kernels` and the device.
+"""Which implementation each mapping stage runs, chosen once per mapper from `mapping.runtime.kernels` and the device.
 
 - "numba": CPU tensors, with the compiled kernels (frame rays, band samples, hash grids, prior, decoders, losses,
   sparse Adam, colour prior) and the compiled NumPy-side kernels (voxel walks, the render search, marching cubes,
   observed-space tests, the frozen field's prior);
 - "torch": CPU tensors through the pure-torch and NumPy reference code only; numba is never imported;
 - "cuda": tensors on the GPU through the torch code; the NumPy-side kernels still run on the host copies when
-  numba imports (and `mapping.kernels` is auto).
+  numba imports (and `mapping.runtime.kernels` is auto).
 
 `resolve_backend` is the one place that makes this choice; the stages take the Backend and call the kernels it
 holds, or their reference code where it holds none. The kernel modules are imported here, on first use, so that
@@ -118,9 +118,9 @@ def pick_device(name: str) -> torch.device:
 
 
 def resolve_backend(kernels: str = "auto", device: str | torch.device = "cpu") -> Backend:
-    """The backend for `mapping.kernels` (auto | torch) and a device (auto | cpu | cuda[:n] | a torch.device)."""
+    """The backend for `mapping.runtime.kernels` (auto | torch) and a device (auto | cpu | cuda[:n] | torch.device)."""
     if kernels not in KERNEL_CHOICES:
-        raise ConfigError(f"mapping.kernels: unknown {kernels!r}; use one of {KERNEL_CHOICES}")
+        raise ConfigError(f"mapping.runtime.kernels: unknown {kernels!r}; use one of {KERNEL_CHOICES}")
     dev = pick_device(device) if isinstance(device, str) else device
     compiled = _compiled() if kernels == "auto" else None
     arrays = None if compiled is None else compiled[1]

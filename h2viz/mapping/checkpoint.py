@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from h2viz.config import MappingConfig
-from h2viz.errors import CheckpointError
+from h2viz.config import MappingConfig, mapping_from_dict
+from h2viz.errors import CheckpointError, ConfigError
 from h2viz.mapping import checkpoint_format
 from h2viz.mapping.backend import Backend
 from h2viz.mapping.field.color_views import StoredView
@@ -117,32 +117,35 @@ def _read_state(path: Path, mmap: bool = False) -> dict[str, Any]:
 
 def _restore(state: dict[str, Any], cfg: MappingConfig | None) -> tuple[Mapper, dict[str, Any]]:
     """A Mapper rebuilt from a checkpoint's decoded state."""
-    saved = MappingConfig(**state["config"])
+    try:
+        saved = mapping_from_dict(state["config"])
+    except ConfigError as e:
+        raise CheckpointError(f"its settings do not load in this version ({e})") from None
     if cfg is not None:  # runtime-only settings may change on resume; the map's geometry may not
-        saved = dataclasses.replace(
-            cfg,
-            voxel_size_m=saved.voxel_size_m,
-            truncation_m=saved.truncation_m,
-            hash_levels=saved.hash_levels,
-            hash_features=saved.hash_features,
-            hash_log2_size=saved.hash_log2_size,
-            hash_scale=saved.hash_scale,
-            color_hash_levels=saved.color_hash_levels,
-            color_hash_log2_size=saved.color_hash_log2_size,
-            geo_hidden=saved.geo_hidden,
-            geo_layers=saved.geo_layers,
-            color_hidden=saved.color_hidden,
-            color_layers=saved.color_layers,
-            color_prior=saved.color_prior,
-            fine_priors=saved.fine_priors,
-            priors=saved.priors,
+        rep, col = saved.representation, saved.color
+        saved = cfg.updated(
+            voxel_size_m=rep.voxel_size_m,
+            truncation_m=rep.truncation_m,
+            hash_levels=rep.hash_levels,
+            hash_features=rep.hash_features,
+            hash_log2_size=rep.hash_log2_size,
+            hash_scale=rep.hash_scale,
+            color_hash_levels=col.color_hash_levels,
+            color_hash_log2_size=col.color_hash_log2_size,
+            geo_hidden=rep.geo_hidden,
+            geo_layers=rep.geo_layers,
+            color_hidden=col.color_hidden,
+            color_layers=col.color_layers,
+            color_prior=col.color_prior,
+            fine_priors=rep.fine_priors,
+            priors=rep.priors,
         )
     mapper = Mapper(saved)
     mapper.octree.load_state_dict(state["octree"])
     mapper.priors.load_state_dict(state["priors_init"])
     mapper.field.sync(mapper.octree)
     mapper.field.load_state_dict(state["field"])
-    mapper.field.priors = state["priors"].to(mapper.device).requires_grad_(saved.priors)
+    mapper.field.priors = state["priors"].to(mapper.device).requires_grad_(saved.representation.priors)
     if mapper.field.color_prior is not None and state.get("color_prior") is not None:
         mapper.field.color_prior.load(state["color_prior"])
     if mapper.field.fine_prior is not None and state.get("fine_prior") is not None:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -45,34 +44,35 @@ class Mapper:
     """Octree SDF priors + hash-grid residual field, optimised frame by frame with coverage keyframes."""
 
     def __init__(self, cfg: MappingConfig) -> None:
-        check_color_settings(cfg.rgb_loss, cfg.color_supervision, cfg.color_prior)
+        check_color_settings(cfg.losses.rgb_loss, cfg.losses.color_supervision, cfg.color.color_prior)
         self.cfg = cfg
-        self.surface_color = cfg.color_supervision == "surface"  # colour learned on a batch of its own
-        self.volume_color = cfg.color_supervision == "volume"  # colour learned in the geometry batch
-        self.geometry_cfg = cfg if self.volume_color else replace(cfg, w_rgb=0.0)  # the geometry batch's losses
-        self.backend: Backend = resolve_backend(cfg.kernels, cfg.device)  # chosen here, once, for every stage
+        self.surface_color = cfg.losses.color_supervision == "surface"  # colour learned on a batch of its own
+        self.volume_color = cfg.losses.color_supervision == "volume"  # colour learned in the geometry batch
+        self.geometry_cfg = cfg if self.volume_color else cfg.updated(w_rgb=0.0)  # the geometry batch's losses
+        self.backend: Backend = resolve_backend(cfg.runtime.kernels, cfg.runtime.device)  # chosen once, for every stage
         self.device = self.backend.device
-        if cfg.threads > 0:
-            torch.set_num_threads(cfg.threads)
-        torch.manual_seed(cfg.seed)
-        self.rng = torch.Generator().manual_seed(cfg.seed)
-        self.voxel_size_m = cfg.voxel_size_m
+        if cfg.runtime.threads > 0:
+            torch.set_num_threads(cfg.runtime.threads)
+        torch.manual_seed(cfg.runtime.seed)
+        self.rng = torch.Generator().manual_seed(cfg.runtime.seed)
+        rep, kf, views, mesh = cfg.representation, cfg.keyframes, cfg.rendering, cfg.meshing
+        self.voxel_size_m = rep.voxel_size_m
         arrays = self.backend.array_kernels
         cells = None if arrays is None else arrays.octree.cell_stats
-        self.octree = VoxelOctree(cfg.voxel_size_m, cfg.min_points_per_voxel, cfg.expansion, cells)
-        self.priors = PriorInitializer(cfg.truncation_m, cfg.priors)
-        self.observed = ObservedCells(cfg.voxel_size_m, self.backend)  # where depth was measured, for meshing
+        self.octree = VoxelOctree(rep.voxel_size_m, rep.min_points_per_voxel, rep.expansion, cells)
+        self.priors = PriorInitializer(rep.truncation_m, rep.priors)
+        self.observed = ObservedCells(rep.voxel_size_m, self.backend)  # where depth was measured, for meshing
         self.field = HybridField(cfg, self.backend).to(self.device)
-        self.field.priors = self.field.priors.to(self.device).requires_grad_(cfg.priors)
+        self.field.priors = self.field.priors.to(self.device).requires_grad_(rep.priors)
         self.optim = self._make_optimiser()
         self.keyframes = KeyframeSet(
-            cfg.n_keyframes, cfg.keyframe_iou, cfg.keyframe_max_gap, cfg.keyframe_strategy, cfg.seed
+            kf.n_keyframes, kf.keyframe_iou, kf.keyframe_max_gap, kf.keyframe_strategy, cfg.runtime.seed
         )
         self.keyframe_rays: list[FrameRays] = []
         self.thumbnails: list[np.ndarray] = []
-        self.keyframe_budget = KeyframeBudget(cfg.keyframe_budget_mb)  # retires / thins keyframes past the budget
-        self.color_views = ColorViews(cfg.color_views, cfg.color_views_mb, cfg.color_views_field)  # rendered colour
-        self.mesher = ChunkedMesher(cfg.voxel_size_m, cfg.mesh_resolution, cfg.chunk_voxels, self.backend)
+        self.keyframe_budget = KeyframeBudget(kf.keyframe_budget_mb)  # retires / thins keyframes past the budget
+        self.color_views = ColorViews(views.color_views, views.color_views_mb, views.color_views_field)  # rendering
+        self.mesher = ChunkedMesher(rep.voxel_size_m, mesh.mesh_resolution, mesh.chunk_voxels, self.backend)
         self.touched = np.zeros(0, dtype=bool)  # (V,) voxels allocated or observed since the last mesh job
         self.trajectory: list[np.ndarray] = []
         self.frames_done = 0
@@ -90,12 +90,12 @@ class Mapper:
         """Adam for the growing corner priors (ours) and for hash tables and decoders (torch's fused one:
         a dense step over both 2^19-entry tables costs ~4 ms on CPU, less than a lazy update of the few
         hundred thousand rows a step touches, whose random accesses cost ~15x more per row)."""
-        opt = GrowingAdam(self.cfg.lr, backend=self.backend)
-        if self.cfg.priors:
+        opt = GrowingAdam(self.cfg.optimization.lr, backend=self.backend)
+        if self.cfg.representation.priors:
             opt.add("priors", lambda: self.field.priors, sparse=True)  # only corners with gradient move
         one_pass = {"fused": True} if self.device.type in ("cpu", "cuda") else {}  # torch's single-kernel Adam
         self.net_optim = torch.optim.Adam(
-            self.field.parameters(), lr=self.cfg.lr, betas=(0.9, 0.99), eps=1e-15, **one_pass
+            self.field.parameters(), lr=self.cfg.optimization.lr, betas=(0.9, 0.99), eps=1e-15, **one_pass
         )
         return opt
 
@@ -146,7 +146,7 @@ class Mapper:
         """One step on rays from K + 1 keyframes drawn at random (what `refine` runs, and real-time mode after the
         stream); marks every voxel for re-meshing. Returns the loss (NaN without keyframes)."""
         n_keyframes = len(self.keyframe_rays)
-        n_frames = min(self.cfg.n_keyframes + 1, n_keyframes)
+        n_frames = min(self.cfg.keyframes.n_keyframes + 1, n_keyframes)
         if n_frames == 0:
             return float("nan")
         picked = torch.randperm(n_keyframes, generator=self.rng)[:n_frames]  # the ray sampler's generator
@@ -192,7 +192,7 @@ class Mapper:
         self.trajectory.append(frame.T_world_camera)
         self.frames_done += 1
         self.max_depth_m = max(self.max_depth_m, float(frame.depth_m.max(initial=0.0)))
-        if self.cfg.mesh_every > 0 and self.frames_done % self.cfg.mesh_every == 0:
+        if self.cfg.meshing.mesh_every > 0 and self.frames_done % self.cfg.meshing.mesh_every == 0:
             self.update_mesh()
 
     def _frame_stats(
@@ -247,7 +247,7 @@ class Mapper:
         return keyframe_bytes(self.keyframes, self.keyframe_rays, self.thumbnails) / 1e6
 
     def _batch(self, frames: list[FrameRays]) -> RayBatch:
-        n = max(1, self.cfg.rays_per_iter // len(frames))
+        n = max(1, self.cfg.sampling.rays_per_iter // len(frames))
         return sample_frames(frames, n, self.rng, self.backend)
 
     def _optimise(self, frames: list[FrameRays], timer: StageTimer) -> tuple[int, dict[str, float]]:
@@ -255,25 +255,34 @@ class Mapper:
         history: list[float] = []
         above = 0
         terms: dict[str, torch.Tensor] = {}
-        for it in range(self.cfg.max_iters):
+        for it in range(self.cfg.optimization.max_iters):
             terms = self._step(frames, timer)
             if self.on_iteration is not None:
                 self.on_iteration()
             loss = float(terms["total"])
             above = above + 1 if history and loss > float(np.mean(history)) else 0
             history.append(loss)
-            if self.cfg.early_ending and above >= 2:
+            if self.cfg.optimization.early_ending and above >= 2:
                 return it + 1, {k: float(v) for k, v in terms.items()}
-        return self.cfg.max_iters, {k: float(v) for k, v in terms.items()}
+        return self.cfg.optimization.max_iters, {k: float(v) for k, v in terms.items()}
 
     def _samples(self, frames: list[FrameRays]) -> tuple[Samples, RayBatch]:
         """A batch of rays and their samples: the truncation band plus free space, or the paper's dense march."""
         c = self.cfg
         batch = self._batch(frames)
-        if c.free_samples < 0:  # every 1 cm of every allocated voxel the ray crosses
-            far = batch.depth + c.band_behind_m
-            return sample_rays(self.octree, batch.origins, batch.dirs, far, c.step_m, True, backend=self.backend), batch
-        layout = BandLayout(c.band_m, c.truncation_m, c.step_m, c.band_front_step_m, c.free_samples, c.band_behind_m)
+        if c.sampling.free_samples < 0:  # every 1 cm of every allocated voxel the ray crosses
+            far = batch.depth + c.sampling.band_behind_m
+            return sample_rays(
+                self.octree, batch.origins, batch.dirs, far, c.sampling.step_m, True, backend=self.backend
+            ), batch
+        layout = BandLayout(
+            c.sampling.band_m,
+            c.representation.truncation_m,
+            c.sampling.step_m,
+            c.sampling.band_front_step_m,
+            c.sampling.free_samples,
+            c.sampling.band_behind_m,
+        )
         samples = band_samples(self.octree, batch.origins, batch.dirs, batch.depth, layout, self.rng, self.backend)
         return samples, batch
 
@@ -302,11 +311,11 @@ class Mapper:
     def _surface_color_loss(self, frames: list[FrameRays]) -> torch.Tensor:
         """The colour loss of a batch of its own: the colour field at each ray's measured surface point (camera +
         depth along the z-normalised ray) against the pixel's colour; gradients reach only the colour branch."""
-        n = max(1, self.cfg.color_rays_per_iter // len(frames))
+        n = max(1, self.cfg.experimental.color_rays_per_iter // len(frames))
         batch = sample_frames(frames, n, self.rng, self.backend)
         points = batch.origins + batch.dirs * batch.depth[:, None]  # (R,3)
         rgb = self.field.color(points)  # (R,3)
-        return self.cfg.w_rgb * color_error(rgb, batch.rgb, self.cfg.rgb_loss == "l2")
+        return self.cfg.losses.w_rgb * color_error(rgb, batch.rgb, self.cfg.losses.rgb_loss == "l2")
 
     def _losses(self, samples: Samples, sdf: torch.Tensor, batch: RayBatch) -> dict[str, torch.Tensor]:
         """Render the batch and take the four losses (colour evaluated only where the weights matter, not at all when
@@ -317,7 +326,8 @@ class Mapper:
         kernels = self.backend.cpu_kernels(sdf)
         if kernels is not None:
             return kernels.loss.mapping_losses(samples, sdf, color, batch.rgb, batch.depth, cfg)
-        weights = render_weights(samples, sdf, cfg.truncation_m, cfg.render_temperature)  # (S,)
+        tr, tau = cfg.representation.truncation_m, cfg.rendering.render_temperature
+        weights = render_weights(samples, sdf, tr, tau)  # (S,)
         live = live_samples(samples, weights)  # (S',)
         render = composite(samples, weights, color(samples.points[live]), live)  # colour (S',3) of the live samples
         return mapping_losses(samples, sdf, render, batch.rgb, batch.depth, cfg)
@@ -337,7 +347,7 @@ class Mapper:
             vid = locate(self.octree, p)
             ok = vid >= 0
             s = torch.full((p.shape[0],), float("nan"), device=self.device)
-            s[ok] = self.field.sdf(p[ok], vid[ok]) * self.cfg.truncation_m
+            s[ok] = self.field.sdf(p[ok], vid[ok]) * self.cfg.representation.truncation_m
             out[i : i + 65536] = s.cpu().numpy()
         return out
 
@@ -352,12 +362,12 @@ class Mapper:
 
     @property
     def mesh_observed_only(self) -> bool:
-        """Mesh only near measured depth (mapping.mesh_observed_only); changing it re-meshes every chunk."""
-        return self.cfg.mesh_observed_only
+        """Mesh only near measured depth (mapping.meshing.mesh_observed_only); changing it re-meshes every chunk."""
+        return self.cfg.meshing.mesh_observed_only
 
     @mesh_observed_only.setter
     def mesh_observed_only(self, value: bool) -> None:
-        self.cfg.mesh_observed_only = bool(value)
+        self.cfg.meshing.mesh_observed_only = bool(value)
 
     @property
     def mesh_resolution(self) -> int:
@@ -375,7 +385,7 @@ class Mapper:
         close the surface with a skirt where its unobserved corners meet observed ones: with `mesh_observed_only`
         its faces are kept only where depth was measured in their own 1.25 cm cell (measured surfaces there are
         kept, skirts are not), otherwise such voxels are not meshed."""
-        if not self.touched.any() and self.mesher.stale(self.frames_done, self.cfg.mesh_observed_only) == 0:
+        if not self.touched.any() and self.mesher.stale(self.frames_done, self.cfg.meshing.mesh_observed_only) == 0:
             return None
         self.version += 1
         job = self._frozen_job(self.mesher, refresh_s, whole)
@@ -385,14 +395,15 @@ class Mapper:
     def _frozen_job(self, mesher: ChunkedMesher, refresh_s: float, whole: bool) -> MeshJob:
         initialised = self.priors.initialised(self.octree.n_voxels)  # (V,)
         support = None
-        if self.cfg.mesh_observed_only:  # every voxel; where priors are missing, faces need depth in their own cell
+        # every voxel; where priors are missing, faces need depth in their own cell
+        if self.cfg.meshing.mesh_observed_only:
             meshable = np.arange(self.octree.n_voxels)
             support = self.observed.snapshot(self.octree, strict=~initialised)
         else:
             meshable = np.flatnonzero(initialised)  # (V',) voxel ids
         dirty = self.touched[meshable] & (not whole)
-        band = self.cfg.mesh_prior_band if self.cfg.priors else 0.0
-        field = FrozenField(self.field, self.cfg.truncation_m, band, self.backend)
+        band = self.cfg.meshing.mesh_prior_band if self.cfg.representation.priors else 0.0
+        field = FrozenField(self.field, self.cfg.representation.truncation_m, band, self.backend)
         coords = self.octree.voxel_coords()[meshable]
         return MeshJob(
             mesher, coords, meshable, dirty, field, self.version, self.frames_done, refresh_s, whole, support
@@ -416,7 +427,9 @@ class Mapper:
         if resolution is None or int(resolution) == self.mesher.resolution:
             self.update_mesh()
             return merge_chunks(self.mesher.chunks)
-        mesher = ChunkedMesher(self.cfg.voxel_size_m, int(resolution), self.cfg.chunk_voxels, self.backend)
+        mesher = ChunkedMesher(
+            self.cfg.representation.voxel_size_m, int(resolution), self.cfg.meshing.chunk_voxels, self.backend
+        )
         return merge_chunks(self._frozen_job(mesher, 0.0, whole=True).run())
 
     def export_mesh(self, path: Path) -> None:
@@ -440,7 +453,8 @@ class Mapper:
         """Render any camera: rgb (H,W,3) [0,1], depth/prior (H,W) metres, normal (H,W,3) [-1,1]."""
         params = RenderParams.from_config(self.cfg, self.max_depth_m)
         trusted = None  # voxels whose 8 corners all hold a measured prior: there the priors locate the surface
-        if self.cfg.priors and self.field.fine_prior is None:  # the corner priors miss what only the fine one holds
+        # the corner priors miss what only the fine one holds
+        if self.cfg.representation.priors and self.field.fine_prior is None:
             trusted = torch.ones(self.octree.n_voxels, dtype=torch.bool)  # (V,) host-side: the walks read it
             trusted[torch.from_numpy(self.priors.pending)] = False
         support = self.drawable() if params.surface else None
@@ -465,7 +479,7 @@ class Mapper:
         its own cell where a voxel's priors are incomplete) with mesh_observed_only, else in voxels whose corners
         all hold priors."""
         initialised = self.priors.initialised(self.octree.n_voxels)  # (V,)
-        if self.cfg.mesh_observed_only:
+        if self.cfg.meshing.mesh_observed_only:
             return self.observed.snapshot(self.octree, strict=~initialised).contains
         octree = self.octree
 

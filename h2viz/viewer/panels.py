@@ -237,7 +237,7 @@ class Panels:
             res = gui.add_slider("Marching cubes res.", 2, 16, 1, int(self.cfg.viewer.live_mesh_resolution))
             observed = gui.add_checkbox(
                 "Observed surfaces only",
-                bool(self.cfg.mapping.mesh_observed_only),
+                bool(self.cfg.mapping.meshing.mesh_observed_only),
                 hint="Mesh only within a few cm of measured depth; off: every zero crossing of the field",
             )
         rate.on_update(lambda e: self._command(e, "set", mesh_update_hz=float(rate.value)))

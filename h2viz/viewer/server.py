@@ -38,7 +38,9 @@ class Dashboard:
     def __init__(self, worker: MappingWorker, cfg: Config, host: str | None = None, port: int | None = None) -> None:
         self.worker, self.cfg = worker, cfg
         self.server = make_viser_server(host or cfg.viewer.host, cfg.viewer.port if port is None else port)
-        self.layers = LayerSet(self.server.scene, frustum_scale=max(0.05, 1.0 * cfg.mapping.voxel_size_m))
+        self.layers = LayerSet(
+            self.server.scene, frustum_scale=max(0.05, 1.0 * cfg.mapping.representation.voxel_size_m)
+        )
         self.renders = RenderLoop(self.server, worker, cfg.viewer.render_width)
         self.panels = Panels(self.server, worker, self.layers, self.renders, cfg)
         self.version = 0  # newest snapshot drawn in the panels

@@ -169,6 +169,6 @@ def settings_from_config(cfg: Config) -> WorkerSettings:
     return WorkerSettings(
         realtime=realtime_from_config(cfg),
         stride=max(1, cfg.source.stride),
-        mesh_every=cfg.mapping.mesh_every,
+        mesh_every=cfg.mapping.meshing.mesh_every,
         mesh_update_hz=cfg.viewer.mesh_update_hz,
     )

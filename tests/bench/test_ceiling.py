@@ -14,7 +14,7 @@ TINY = [*CLI_TINY, "--set", "source.synthetic.n_frames=20"]  # the tiny run of t
 
 
 def test_ceiling_fits_each_variant_and_prints_one_row(capsys: pytest.CaptureFixture[str]) -> None:
-    args = ["--steps", "60", "--batch", "2048", "--variant", "mapping.hash_levels=2", *TINY]
+    args = ["--steps", "60", "--batch", "2048", "--variant", "mapping.representation.hash_levels=2", *TINY]
     assert ceiling.main(args) == 0
     lines = capsys.readouterr().out.splitlines()
     rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines if line.startswith("| synthetic")]

@@ -9,8 +9,9 @@ import torch
 
 from bench import gpu
 
-TINY = ["source.synthetic.width=96", "source.synthetic.height=72", "mapping.hash_log2_size=14",
-        "mapping.min_points_per_voxel=1", "mapping.rays_per_iter=512", "mapping.max_iters=3"]  # fmt: skip
+TINY = ["source.synthetic.width=96", "source.synthetic.height=72", "mapping.representation.hash_log2_size=14",
+        "mapping.representation.min_points_per_voxel=1", "mapping.sampling.rays_per_iter=512",
+        "mapping.optimization.max_iters=3"]  # fmt: skip
 
 
 def test_the_report_names_the_backend_and_times_every_stage() -> None:

@@ -132,9 +132,9 @@ def test_means_leave_out_views_without_pixels() -> None:
 
 
 def test_variants_are_named_mapping_overrides() -> None:
-    v = heldout.parse_variant("l2=mapping.rgb_loss=l2,mapping.max_iters=3")
-    assert v == heldout.Variant("l2", ("mapping.rgb_loss=l2", "mapping.max_iters=3"))
-    for bad in ("l2", "=mapping.rgb_loss=l2", "tsdf=mapping.rgb_loss=l2", "x=source.downscale=2"):
+    v = heldout.parse_variant("l2=mapping.losses.rgb_loss=l2,mapping.optimization.max_iters=3")
+    assert v == heldout.Variant("l2", ("mapping.losses.rgb_loss=l2", "mapping.optimization.max_iters=3"))
+    for bad in ("l2", "=mapping.losses.rgb_loss=l2", "tsdf=mapping.losses.rgb_loss=l2", "x=source.downscale=2"):
         with pytest.raises(SystemExit):
             heldout.parse_variant(bad)
     names = [m.name for m in heldout.pick_methods("tsdf,h2viz-mesh", [v], variant_mesh=True)]
@@ -143,9 +143,9 @@ def test_variants_are_named_mapping_overrides() -> None:
 
 def test_a_variant_takes_the_mapping_section_of_a_config_file(tmp_path: Path) -> None:
     v = heldout.parse_variant(f"paper=@{bench.common.ROOT / 'configs' / 'paper.yaml'}")
-    assert "mapping.color_prior=false" in v.overrides and "mapping.free_samples=-1" in v.overrides
+    assert "mapping.color.color_prior=false" in v.overrides and "mapping.sampling.free_samples=-1" in v.overrides
     cfg = bench.common.apply_overrides(bench.common.load_config(), list(v.overrides))
-    assert cfg.mapping.render_surface is False and cfg.mapping.rgb_loss == "l1"
+    assert cfg.mapping.rendering.render_surface is False and cfg.mapping.losses.rgb_loss == "l1"
     other = tmp_path / "other.yaml"
     other.write_text("source:\n  downscale: 2\n")
     with pytest.raises(SystemExit, match="only change mapping"):
@@ -166,9 +166,9 @@ def test_a_measurement_page_is_stamped_with_commit_and_cpu(tmp_path: Path) -> No
 TINY = [
     "source.synthetic.width=160",
     "source.synthetic.height=120",
-    "mapping.max_iters=2",
-    "mapping.hash_log2_size=14",
-    "mapping.threads=2",
+    "mapping.optimization.max_iters=2",
+    "mapping.representation.hash_log2_size=14",
+    "mapping.runtime.threads=2",
 ]
 
 
@@ -191,7 +191,7 @@ def test_heldout_run_scores_every_method_on_frames_none_of_them_mapped(
         spy(TsdfFusion, "tsdf")
         methods.insert(2, "tsdf")
     argv = ["--datasets", "synthetic,fountain", "--methods", ",".join(m for m in methods if m != "l2")]
-    argv += ["--frames", "12", "--k", "4", "--variant", "l2=mapping.rgb_loss=l2"]
+    argv += ["--frames", "12", "--k", "4", "--variant", "l2=mapping.losses.rgb_loss=l2"]
     argv += [arg for item in TINY for arg in ("--set", item)]
     argv += ["--json", str(tmp_path / "rows.json"), "--images", str(tmp_path / "images")]
     assert heldout.main(argv) == 0

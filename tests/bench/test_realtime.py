@@ -8,8 +8,8 @@ import pytest
 
 from bench import realtime
 
-TINY = ["source.synthetic.width=96", "source.synthetic.height=72", "mapping.min_points_per_voxel=1"]
-TINY += ["mapping.hash_log2_size=15", "mapping.rays_per_iter=1024", "eval.n_points=20000"]
+TINY = ["source.synthetic.width=96", "source.synthetic.height=72", "mapping.representation.min_points_per_voxel=1"]
+TINY += ["mapping.representation.hash_log2_size=15", "mapping.sampling.rays_per_iter=1024", "eval.n_points=20000"]
 
 
 def test_the_anytime_rows_integrate_every_frame_and_sharpen_after_the_stream(capsys: pytest.CaptureFixture) -> None:

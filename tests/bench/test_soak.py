@@ -10,8 +10,9 @@ import cv2
 from bench import soak
 
 TINY = [
-    "--set", "mapping.min_points_per_voxel=1", "--set", "mapping.hash_log2_size=14",
-    "--set", "mapping.rays_per_iter=1024", "--set", "mapping.max_iters=2", "--set", "mapping.device=cpu",
+    "--set", "mapping.representation.min_points_per_voxel=1", "--set", "mapping.representation.hash_log2_size=14",
+    "--set", "mapping.sampling.rays_per_iter=1024", "--set", "mapping.optimization.max_iters=2", "--set",
+    "mapping.runtime.device=cpu",
 ]  # fmt: skip
 
 

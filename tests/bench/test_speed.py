@@ -17,8 +17,8 @@ from bench.speed_run import STAGES, Run
 TINY = [
     "source.synthetic.width=160",
     "source.synthetic.height=120",
-    "mapping.max_iters=2",
-    "mapping.hash_log2_size=14",
+    "mapping.optimization.max_iters=2",
+    "mapping.representation.hash_log2_size=14",
     "eval.n_points=20000",
     "eval.n_interpolate=2",
 ]

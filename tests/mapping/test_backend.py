@@ -1,4 +1,4 @@
-"""The backend is chosen once from mapping.kernels and the device; with kernels: torch the whole pipeline (map,
+"""The backend is chosen once from mapping.runtime.kernels and the device; with kernels: torch the whole pipeline (map,
 mesh, render, export, checkpoint, resume) runs with numba import-blocked; on CUDA (skipped without one) likewise."""
 
 from __future__ import annotations
@@ -24,8 +24,9 @@ from tests.mapping.backends import FAST, needs_numba
 ROOT = Path(__file__).resolve().parents[2]
 TINY = [
     "--set", "source.synthetic.width=96", "--set", "source.synthetic.height=72",
-    "--set", "source.synthetic.n_frames=80", "--set", "mapping.min_points_per_voxel=1",
-    "--set", "mapping.hash_log2_size=15", "--set", "mapping.rays_per_iter=1024", "--set", "mapping.max_iters=5",
+    "--set", "source.synthetic.n_frames=80", "--set", "mapping.representation.min_points_per_voxel=1",
+    "--set", "mapping.representation.hash_log2_size=15", "--set", "mapping.sampling.rays_per_iter=1024", "--set",
+    "mapping.optimization.max_iters=5",
     "--set", "eval.n_points=20000", "--set", "eval.n_interpolate=3",
     "--set", "eval.n_extrapolate=2", "--set", "eval.render_downscale=1",
 ]  # fmt: skip
@@ -44,7 +45,7 @@ def test_auto_on_the_cpu_resolves_to_the_numba_kernels_and_torch_to_none() -> No
 
 
 def test_an_unknown_kernel_choice_names_the_setting_and_the_choices() -> None:
-    with pytest.raises(ConfigError, match=r"mapping.kernels: unknown 'numba'.*'auto', 'torch'"):
+    with pytest.raises(ConfigError, match=r"mapping.runtime.kernels: unknown 'numba'.*'auto', 'torch'"):
         resolve_backend("numba", "cpu")
 
 
@@ -66,7 +67,7 @@ from h2viz.mapping.mapper import Mapper
 from h2viz.worker.requests import export_mesh_bytes
 
 out, tiny = sys.argv[1], sys.argv[2:]
-args = ["map", "--frames", "6", "--stride", "10", "-q", *tiny, "--set", "mapping.kernels=torch"]
+args = ["map", "--frames", "6", "--stride", "10", "-q", *tiny, "--set", "mapping.runtime.kernels=torch"]
 assert main([*args, "--out", out]) == 0
 assert main([*args, "--frames", "8", "--out", out + "-resumed", "--resume", out + "/checkpoint.pt"]) == 0
 mapper, _ = load_checkpoint(out + "/checkpoint.pt")
@@ -95,7 +96,7 @@ def test_the_whole_pipeline_runs_with_numba_import_blocked(tmp_path: Path) -> No
     script.write_text(textwrap.dedent(BLOCKED_RUN))
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.run(
-        [sys.executable, str(script), str(out), *TINY, "--set", "mapping.device=cpu"],
+        [sys.executable, str(script), str(out), *TINY, "--set", "mapping.runtime.device=cpu"],
         capture_output=True, text=True, cwd=tmp_path, env=env, timeout=900,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -117,7 +118,9 @@ def test_the_pipeline_runs_on_cuda(tmp_path: Path) -> None:
     """Map, mesh, render, checkpoint and reload on the GPU: every tensor the stages make stays on it."""
     from h2viz.mapping.checkpoint import load_checkpoint, save_checkpoint
 
-    cfg = MappingConfig(device="cuda", hash_log2_size=15, min_points_per_voxel=1, rays_per_iter=1024, max_iters=5)
+    cfg = MappingConfig().updated(
+        device="cuda", hash_log2_size=15, min_points_per_voxel=1, rays_per_iter=1024, max_iters=5
+    )
     mapper = Mapper(cfg)
     assert mapper.backend.name == "cuda" and mapper.field.priors.device.type == "cuda"
     source = SourceConfig(format="synthetic", stride=4, synthetic=SyntheticConfig(width=96, height=72, n_frames=40))

@@ -22,7 +22,7 @@ torch.set_num_threads(2)
 def small_cfg(**kw: object) -> MappingConfig:
     base = dict(device="cpu", min_points_per_voxel=3, rays_per_iter=1024, hash_log2_size=14, max_iters=10)
     base.update(kw)
-    return MappingConfig(**base)  # type: ignore[arg-type]
+    return MappingConfig().updated(**base)  # type: ignore[arg-type]
 
 
 def mesh_error(mapper: Mapper, scene: Scene) -> np.ndarray:

@@ -345,7 +345,7 @@ def chunk(key: tuple[int, int, int], version: int = 1, n_voxels: int = 1) -> Mes
 
 def tiny_mapping_config() -> MappingConfig:
     """A MappingConfig small enough for the real Mapper to take ~0.1 s per 64x48 frame on a CPU."""
-    return MappingConfig(
+    return MappingConfig().updated(
         device="cpu",
         voxel_size_m=0.2,
         truncation_m=0.1,

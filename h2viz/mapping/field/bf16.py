@@ -37,9 +37,9 @@ def native_bf16() -> bool:
 
 
 def use_bf16(precision: str) -> bool:
-    """Resolve mapping.color_precision: auto = bfloat16 where native_bf16(), float32 elsewhere."""
+    """Resolve mapping.color.color_precision: auto = bfloat16 where native_bf16(), float32 elsewhere."""
     if precision not in PRECISIONS:
-        raise ConfigError(f"mapping.color_precision: unknown {precision!r}; use one of {PRECISIONS}")
+        raise ConfigError(f"mapping.color.color_precision: unknown {precision!r}; use one of {PRECISIONS}")
     return precision == "bfloat16" or (precision == "auto" and native_bf16())
 
 
@@ -55,7 +55,9 @@ def _padded_call(net: nn.Module, x: Tensor) -> Tensor:
 def decode_bf16(net: nn.Module, x: Tensor) -> Tensor:
     """net(x) for CPU features x (N, D_in) with bfloat16 products; differentiable w.r.t. x and net's parameters."""
     if x.device.type != "cpu":
-        raise ConfigError("bfloat16 colour decoding runs on the CPU; set mapping.color_precision: float32 for CUDA")
+        raise ConfigError(
+            "bfloat16 colour decoding runs on the CPU; set mapping.color.color_precision: float32 for CUDA"
+        )
     if torch.is_grad_enabled() or x.shape[0] <= TILE:
         return _padded_call(net, x)
     return torch.cat([_padded_call(net, x[i : i + TILE]) for i in range(0, x.shape[0], TILE)])

@@ -3,7 +3,7 @@
 H2-Mapping's geometry is an explicit prior (corner SDFs projected from depth) plus a hash-grid residual. Colour
 gets the same split here: every valid pixel's colour is splatted, with trilinear weights, onto the 8 nearest
 points of a (sub+1)^3 lattice inside the voxel its measured surface point falls in (sub =
-mapping.color_prior_cells: 0.83 cm apart at 12 and 10 cm voxels), and the lattice holds the weighted sums. The
+mapping.color.color_prior_cells: 0.83 cm apart at 12 and 10 cm voxels), and the lattice holds the weighted sums. The
 prior at a point is the trilinear blend of the sums over the weights (lattice points nothing was splatted on do
 not pull it to black); the colour field adds its residual to the prior's logit, so the network learns only what
 an average of observations misses (texture finer than the lattice, shading it blurs) instead of every colour from
@@ -97,7 +97,7 @@ class ColorPrior:
         """Take saved lattices (V, (sub+1)^3, 4) (a checkpoint's)."""
         if sums.shape[1:] != (self.n**3, 4):
             saved = round(float(sums.shape[1]) ** (1.0 / 3.0)) - 1 if sums.ndim == 3 and sums.shape[2] == 4 else None
-            hint = f"; set mapping.color_prior_cells={saved} to load it" if saved is not None else ""
+            hint = f"; set mapping.color.color_prior_cells={saved} to load it" if saved is not None else ""
             raise ValueError(
                 f"the checkpoint's colour prior lattices have shape {tuple(sums.shape)}, this configuration's "
                 f"(V, {self.n**3}, 4) ({self.sub} cells a voxel edge){hint}"

@@ -119,8 +119,8 @@ class ColorViews:
     def __init__(self, n_blend: int, budget_mb: float, field_weight: float) -> None:
         if n_blend < 0 or budget_mb < 0 or not 0.0 <= field_weight <= 1.0:
             raise ValueError(
-                "mapping.color_views must be >= 0, mapping.color_views_mb >= 0 and mapping.color_views_field in "
-                f"[0, 1]; got {n_blend}, {budget_mb}, {field_weight}"
+                "mapping.rendering.color_views must be >= 0, mapping.rendering.color_views_mb >= 0 and "
+                f"mapping.rendering.color_views_field in [0, 1]; got {n_blend}, {budget_mb}, {field_weight}"
             )
         self.n_blend = int(n_blend)
         self.budget_bytes = int(budget_mb * 2**20)

@@ -54,37 +54,38 @@ class HybridField(nn.Module):
 
     def __init__(self, cfg: MappingConfig, backend: Backend | None = None) -> None:
         super().__init__()
-        base = cfg.hash_base_resolution_m or cfg.voxel_size_m
-        grid = dict(n_levels=cfg.hash_levels, n_features=cfg.hash_features, log2_size=cfg.hash_log2_size)
-        self.geo_grid = HashGrid(**grid, base_cell_m=base, scale=cfg.hash_scale, backend=backend)
+        rep, col = cfg.representation, cfg.color
+        base = rep.hash_base_resolution_m or rep.voxel_size_m
+        grid = dict(n_levels=rep.hash_levels, n_features=rep.hash_features, log2_size=rep.hash_log2_size)
+        self.geo_grid = HashGrid(**grid, base_cell_m=base, scale=rep.hash_scale, backend=backend)
         color = dict(
-            n_levels=cfg.color_hash_levels or cfg.hash_levels,
-            n_features=cfg.hash_features,
-            log2_size=cfg.color_hash_log2_size or cfg.hash_log2_size,
+            n_levels=col.color_hash_levels or rep.hash_levels,
+            n_features=rep.hash_features,
+            log2_size=col.color_hash_log2_size or rep.hash_log2_size,
         )
-        self.color_grid = HashGrid(**color, base_cell_m=base, scale=cfg.hash_scale, backend=backend)
-        self.geo_mlp = mlp(self.geo_grid.output_dim, cfg.geo_hidden, cfg.geo_layers, 1)
-        self.color_mlp = mlp(self.color_grid.output_dim, cfg.color_hidden, cfg.color_layers, 3)
+        self.color_grid = HashGrid(**color, base_cell_m=base, scale=rep.hash_scale, backend=backend)
+        self.geo_mlp = mlp(self.geo_grid.output_dim, rep.geo_hidden, rep.geo_layers, 1)
+        self.color_mlp = mlp(self.color_grid.output_dim, col.color_hidden, col.color_layers, 3)
         with torch.no_grad():  # the residual starts near zero so the priors rule at first
-            for net in (self.geo_mlp, self.color_mlp) if cfg.color_prior else (self.geo_mlp,):
+            for net in (self.geo_mlp, self.color_mlp) if col.color_prior else (self.geo_mlp,):
                 last = net[-1]
                 assert isinstance(last, nn.Linear)
                 last.weight.mul_(0.01)
                 last.bias.zero_()
-        self.voxel_size_m = cfg.voxel_size_m
+        self.voxel_size_m = rep.voxel_size_m
         self.backend = backend
-        self.color_bf16 = use_bf16(cfg.color_precision)  # applies on the CPU only
+        self.color_bf16 = use_bf16(col.color_precision)  # applies on the CPU only
         self.use_residual = True
-        self.residual_bound = float(cfg.residual_bound) if cfg.priors else 0.0  # tr units, 0 = unbounded
+        self.residual_bound = float(rep.residual_bound) if rep.priors else 0.0  # tr units, 0 = unbounded
         # Corners without a prior start as free space at the truncation distance: a zero would put a
         # surface on every corner whose projection failed.
-        self.unset_prior = 1.0 if cfg.priors else 0.0
+        self.unset_prior = 1.0 if rep.priors else 0.0
         self.color_prior = (
-            ColorPrior(cfg.voxel_size_m, backend=backend, sub=cfg.color_prior_cells) if cfg.color_prior else None
+            ColorPrior(rep.voxel_size_m, backend=backend, sub=col.color_prior_cells) if col.color_prior else None
         )
-        fine = cfg.fine_priors and cfg.priors
-        self.fine_prior = FinePrior(cfg.voxel_size_m, cfg.truncation_m, backend=backend) if fine else None
-        self.fine_residual = cfg.fine_prior_residual  # the residual also corrects the fine prior
+        fine = rep.fine_priors and rep.priors
+        self.fine_prior = FinePrior(rep.voxel_size_m, rep.truncation_m, backend=backend) if fine else None
+        self.fine_residual = cfg.experimental.fine_prior_residual  # the residual also corrects the fine prior
         self.octree: VoxelOctree | None = None  # where the colour prior looks points up (set by sync)
         self.priors = torch.zeros(0)  # (C,) corner SDF in tr units, grows with the octree
         self.corner_ids = torch.zeros(0, 8, dtype=torch.long)  # (V,8)
@@ -120,7 +121,7 @@ class HybridField(nn.Module):
 
     def prior_parts(self, points: torch.Tensor, voxel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The prior SDF (N,) and the residual's weight (N,) at points (N,3) in voxels (N,): the share of the
-        prior the corner priors make up when the residual corrects only those (mapping.fine_prior_residual off),
+        prior the corner priors make up when the residual corrects only those (experimental.fine_prior_residual off),
         else None (weight 1 everywhere)."""
         coarse = self.corner_prior(points, voxel)
         if self.fine_prior is None:

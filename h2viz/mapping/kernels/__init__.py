@@ -1,6 +1,6 @@
 """The compiled (numba) fast paths of the mapping stages, for CPU tensors and host arrays.
 
-Nothing here is imported unless `h2viz.mapping.backend` finds numba (with `mapping.kernels: auto`): the stages
+Nothing here is imported unless `h2viz.mapping.backend` finds numba (with `mapping.runtime.kernels: auto`): the stages
 take a `Backend` that holds these modules, and run their own torch / NumPy reference code where it holds none.
 Each module is checked against that reference by its parity test (tests/mapping/kernels/ and the stage's tests).
 

@@ -203,7 +203,9 @@ def render_weights(samples: Samples, sdf: Tensor, cfg: MappingConfig) -> Rendere
     wsum = np.empty(samples.n_rays, np.float32)
     live = np.empty(s.shape[0], np.bool_)
     with parallel_region():
-        _weights_kernel(t, s, offsets, cfg.truncation_m, cfg.render_temperature, LIVE_SHARE, w, wsum, live)
+        _weights_kernel(
+            t, s, offsets, cfg.representation.truncation_m, cfg.rendering.render_temperature, LIVE_SHARE, w, wsum, live
+        )
     live_ids = np.flatnonzero(live)
     live_offsets = np.zeros_like(offsets)
     np.cumsum(np.bincount(ray[live_ids], minlength=samples.n_rays), out=live_offsets[1:])
@@ -225,12 +227,13 @@ class _RenderLosses(torch.autograd.Function):
         with parallel_region():
             _render_kernel(
                 rendered.t, rendered.sdf, rendered.offsets, rendered.w, rendered.wsum, rendered.live_offsets,
-                rgb_np, rendered.live_ids, gt, dgt, cfg.truncation_m, cfg.rgb_loss == "l2", depth, color, live_sum,
+                rgb_np, rendered.live_ids, gt, dgt, cfg.representation.truncation_m, cfg.losses.rgb_loss == "l2",
+                depth, color, live_sum,
                 per_ray,
             )  # fmt: skip
         sums = per_ray.sum(0, dtype=np.float64)
         counts = np.maximum(sums[4:], 1.0) * np.array([3.0, 1.0, 1.0, 1.0])  # colour averages 3 channels
-        weights = np.array([cfg.w_rgb, cfg.w_depth, cfg.w_fs, cfg.w_sdf])
+        weights = np.array([cfg.losses.w_rgb, cfg.losses.w_depth, cfg.losses.w_fs, cfg.losses.w_sdf])
         ctx.rendered, ctx.cfg, ctx.arrays = rendered, cfg, (rgb_np, gt, dgt, depth, color, live_sum)
         ctx.scale = weights / counts  # d(term_k)/d(per-ray sum_k)
         return torch.from_numpy((sums[:4] * ctx.scale).astype(np.float32))
@@ -248,7 +251,8 @@ class _RenderLosses(torch.autograd.Function):
         with parallel_region():
             _backward_kernel(
                 rendered.t, rendered.sdf, rendered.offsets, rendered.w, rendered.wsum, rendered.live_offsets,
-                rgb_np, rendered.live_ids, gt, dgt, cfg.truncation_m, cfg.render_temperature, cfg.rgb_loss == "l2",
+                rgb_np, rendered.live_ids, gt, dgt, cfg.representation.truncation_m, cfg.rendering.render_temperature,
+                cfg.losses.rgb_loss == "l2",
                 depth, color, live_sum, coef, g_sdf, g_rgb, g_w,
             )  # fmt: skip
         return torch.from_numpy(g_sdf), torch.from_numpy(g_rgb), None, None, None, None

@@ -1,4 +1,4 @@
-"""Keeping the keyframes within a memory budget (mapping.keyframe_budget_mb) without losing coverage of the map.
+"""Keeping the keyframes within a memory budget (mapping.keyframes.keyframe_budget_mb), still covering the map.
 
 While the keyframes' rays, voxel lists and thumbnails take more than the budget:
 1. retire the most redundant keyframe whose voxels all lie in other keyframes (H3-Mapping's pruning: the map stays

@@ -156,11 +156,11 @@ class KeyframeSet:
         seed: int = 0,
     ) -> None:
         if strategy not in STRATEGIES:
-            raise ConfigError(f"mapping.keyframe_strategy: unknown {strategy!r}; use one of {STRATEGIES}")
+            raise ConfigError(f"mapping.keyframes.keyframe_strategy: unknown {strategy!r}; use one of {STRATEGIES}")
         if k < 1 or max_gap < 1:
-            raise ConfigError(f"mapping.n_keyframes ({k}) and keyframe_max_gap ({max_gap}) must be >= 1")
+            raise ConfigError(f"mapping.keyframes.n_keyframes ({k}) and keyframe_max_gap ({max_gap}) must be >= 1")
         if not 0.0 <= iou_threshold <= 1.0:
-            raise ConfigError(f"mapping.keyframe_iou must lie in [0, 1], got {iou_threshold}")
+            raise ConfigError(f"mapping.keyframes.keyframe_iou must lie in [0, 1], got {iou_threshold}")
         self.k, self.iou_threshold, self.max_gap = k, iou_threshold, max_gap
         self.strategy, self.seed = strategy, seed
         self._clear()

@@ -8,7 +8,7 @@ while the SDF stays near zero (kernels/render_search.py). The kept samples get e
 (`render_weights`); the skipped ones would weigh less than `NEGLIGIBLE_WEIGHT`, as long as the hash-grid
 residual does not add surfaces where the measured priors see none. `render_image_reference` is the exhaustive
 render, kept as the baseline the fast path is checked against, and what a backend without array kernels (numba
-absent, or `mapping.kernels: torch`) runs. Depth is along the camera axis (z-normalised
+absent, or `mapping.runtime.kernels: torch`) runs. Depth is along the camera axis (z-normalised
 rays); rays whose weights sum below HIT_WEIGHT render empty (0) in both.
 """
 
@@ -84,14 +84,15 @@ class RenderParams:
     @staticmethod
     def from_config(cfg: MappingConfig, max_depth_m: float) -> RenderParams:
         """The mapper's render settings: rays reach 1.5x the deepest depth seen."""
+        rep = cfg.representation
         return RenderParams(
-            t_far=max(max_depth_m, 1.0) * 1.5 + cfg.voxel_size_m,
-            step_m=cfg.step_m,
-            truncation_m=cfg.truncation_m,
-            temperature=cfg.render_temperature,
-            band=4.0 * cfg.voxel_size_m / cfg.truncation_m if cfg.priors else None,
-            surface=cfg.render_surface,
-            prior_band=cfg.mesh_prior_band if cfg.priors else 0.0,
+            t_far=max(max_depth_m, 1.0) * 1.5 + rep.voxel_size_m,
+            step_m=cfg.sampling.step_m,
+            truncation_m=rep.truncation_m,
+            temperature=cfg.rendering.render_temperature,
+            band=4.0 * rep.voxel_size_m / rep.truncation_m if rep.priors else None,
+            surface=cfg.rendering.render_surface,
+            prior_band=cfg.meshing.mesh_prior_band if rep.priors else 0.0,
         )
 
 

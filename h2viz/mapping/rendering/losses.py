@@ -11,25 +11,25 @@ from h2viz.mapping.rendering.volume import RayRender, segment_sum
 from h2viz.mapping.sampling.samples import Samples
 
 RGB_LOSSES: tuple[str, ...] = ("l1", "l2")
-"""mapping.rgb_loss choices: absolute or squared colour error."""
+"""mapping.losses.rgb_loss choices: absolute or squared colour error."""
 
 
 COLOR_SUPERVISION: tuple[str, ...] = ("none", "surface", "volume")
-"""mapping.color_supervision choices: no colour training (the colour priors alone), colour at each ray's measured
+"""mapping.losses.color_supervision choices: no colour training (the colour priors alone), colour at each ray's measured
 surface point, or volume-rendered colour."""
 
 
 def check_color_settings(rgb_loss: str, supervision: str = "volume", color_prior: bool = False) -> None:
-    """Raise ConfigError for an unknown mapping.rgb_loss or mapping.color_supervision, or for a map with neither
-    colour priors nor colour training."""
+    """Raise ConfigError for an unknown mapping.losses.rgb_loss or mapping.losses.color_supervision, or for a map with
+    neither colour priors nor colour training."""
     if rgb_loss not in RGB_LOSSES:
-        raise ConfigError(f"mapping.rgb_loss: unknown {rgb_loss!r}; use one of {RGB_LOSSES}")
+        raise ConfigError(f"mapping.losses.rgb_loss: unknown {rgb_loss!r}; use one of {RGB_LOSSES}")
     if supervision not in COLOR_SUPERVISION:
-        raise ConfigError(f"mapping.color_supervision: unknown {supervision!r}; use one of {COLOR_SUPERVISION}")
+        raise ConfigError(f"mapping.losses.color_supervision: unknown {supervision!r}; use one of {COLOR_SUPERVISION}")
     if supervision == "none" and not color_prior:
         raise ConfigError(
-            "mapping.color_supervision: none leaves colour to the colour priors, but mapping.color_prior is false; "
-            "turn the priors on or pick surface / volume"
+            "mapping.losses.color_supervision: none leaves colour to the colour priors, but mapping.color.color_prior "
+            "is false; turn the priors on or pick surface / volume"
         )
 
 
@@ -61,7 +61,7 @@ def mapping_losses(
     cfg: MappingConfig,
 ) -> dict[str, torch.Tensor]:
     """Weighted loss terms and their sum: sdf (S,) in tr units, rgb_gt (R,3) in [0,1], depth_gt (R,) metres."""
-    tr = cfg.truncation_m
+    tr = cfg.representation.truncation_m
     d = depth_gt[samples.ray]  # (S,)
     valid = d > 0
     front = valid & (samples.t < d - tr)
@@ -71,12 +71,12 @@ def mapping_losses(
     ok = render.hit & (depth_gt > 0)
     zero = sdf.sum() * 0.0
     depth = (render.depth - depth_gt).abs()[ok].mean() if bool(ok.any()) else zero
-    rgb = color_error(render.rgb[render.hit], rgb_gt[render.hit], cfg.rgb_loss == "l2")
+    rgb = color_error(render.rgb[render.hit], rgb_gt[render.hit], cfg.losses.rgb_loss == "l2")
     terms = {
-        "rgb": cfg.w_rgb * rgb,
-        "depth": cfg.w_depth * depth,
-        "fs": cfg.w_fs * fs,
-        "sdf": cfg.w_sdf * sdf_term,
+        "rgb": cfg.losses.w_rgb * rgb,
+        "depth": cfg.losses.w_depth * depth,
+        "fs": cfg.losses.w_fs * fs,
+        "sdf": cfg.losses.w_sdf * sdf_term,
     }
     terms["total"] = terms["rgb"] + terms["depth"] + terms["fs"] + terms["sdf"]
     return terms

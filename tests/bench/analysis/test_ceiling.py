@@ -36,7 +36,7 @@ def _plane_xy() -> tuple[np.ndarray, np.ndarray]:
 
 
 def _small(**kw: object) -> MappingConfig:
-    return MappingConfig(hash_log2_size=14, **kw)  # type: ignore[arg-type]
+    return MappingConfig().updated(hash_log2_size=14, **kw)  # type: ignore[arg-type]
 
 
 def test_surface_samples_lie_on_the_plane_under_their_pixels() -> None:
@@ -121,4 +121,4 @@ def test_volume_colour_of_a_constant_field_is_that_colour_and_reads_around_the_s
     assert torch.allclose(rgb, torch.full((2, 3), 0.25))
     dist = torch.linalg.norm(seen[0], dim=1)  # where colour was read: within two sample steps of either surface
     near = torch.minimum((dist - 2.0).abs(), (dist - math.sqrt(2.0)).abs())
-    assert len(seen[0]) >= 2 and float(near.max()) < 2 * cfg.step_m  # the 5 cm band holds 11 samples a ray
+    assert len(seen[0]) >= 2 and float(near.max()) < 2 * cfg.sampling.step_m  # the 5 cm band holds 11 samples a ray

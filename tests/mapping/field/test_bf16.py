@@ -65,7 +65,7 @@ def test_precision_setting() -> None:
     assert use_bf16("float32") is False
     assert use_bf16("bfloat16") is True
     assert use_bf16("auto") is native_bf16()
-    with pytest.raises(ConfigError, match="mapping.color_precision.*float32"):
+    with pytest.raises(ConfigError, match="mapping.color.color_precision.*float32"):
         use_bf16("half")
 
 
@@ -73,7 +73,7 @@ def test_the_field_decodes_colour_in_the_configured_precision() -> None:
     tree = VoxelOctree(0.1, min_points=0, expansion=False)
     tree.allocate(np.array([[0.05, 0.05, 0.05]]))
     cfg = dict(hash_log2_size=10, color_prior=False)  # the decoder alone (with priors it starts near zero)
-    fields = {p: HybridField(MappingConfig(**cfg, color_precision=p)) for p in ("float32", "bfloat16")}  # type: ignore[arg-type]
+    fields = {p: HybridField(MappingConfig().updated(**cfg, color_precision=p)) for p in ("float32", "bfloat16")}  # type: ignore[arg-type]
     fields["bfloat16"].load_state_dict(fields["float32"].state_dict())
     with torch.no_grad():
         for f in fields.values():

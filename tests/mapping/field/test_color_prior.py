@@ -89,5 +89,5 @@ def test_storage_grows_without_losing_lattices() -> None:
 def test_a_checkpoint_of_another_lattice_resolution_names_the_setting() -> None:
     saved = ColorPrior(VS, sub=8)
     saved.grow(2)
-    with pytest.raises(ValueError, match="mapping.color_prior_cells=8"):
+    with pytest.raises(ValueError, match="mapping.color.color_prior_cells=8"):
         ColorPrior(VS, sub=12).load(saved.sums)

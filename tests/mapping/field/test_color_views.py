@@ -122,5 +122,5 @@ def test_a_stored_view_survives_its_checkpoint_record() -> None:
 
 
 def test_bad_settings_name_the_keys() -> None:
-    with pytest.raises(ValueError, match="mapping.color_views_field"):
+    with pytest.raises(ValueError, match="mapping.rendering.color_views_field"):
         ColorViews(n_blend=4, budget_mb=10, field_weight=2.0)

@@ -262,7 +262,7 @@ def test_rejects_bad_arguments() -> None:
         HashGrid(log2_size=0)
     with pytest.raises(ConfigError):
         HashGrid(base_cell_m=0.0)
-    with pytest.raises(ConfigError, match="mapping.kernels"):
+    with pytest.raises(ConfigError, match="mapping.runtime.kernels"):
         resolve_backend("cuda")
     with pytest.raises(H2vizError):
         HashGrid(log2_size=4)(torch.zeros(5, 2))

@@ -20,7 +20,7 @@ def _field(kernels: str) -> tuple[HybridField, VoxelOctree]:
     tree = VoxelOctree(0.1, min_points=0, expansion=False)
     rng = np.random.default_rng(0)
     tree.allocate((rng.integers(-5, 5, size=(200, 3)) + 0.5) * 0.1)
-    field = HybridField(MappingConfig(hash_log2_size=12), resolve_backend(kernels))
+    field = HybridField(MappingConfig().updated(hash_log2_size=12), resolve_backend(kernels))
     field.sync(tree)
     field.priors = torch.from_numpy(rng.normal(size=tree.n_corners).astype(np.float32)).requires_grad_()
     return field, tree

@@ -14,7 +14,7 @@ from h2viz.mapping.field.octree import VoxelOctree
 def _field(**kw: object) -> tuple[HybridField, torch.Tensor, torch.Tensor]:
     tree = VoxelOctree(0.1, min_points=0, expansion=False)
     tree.allocate(np.array([[0.05, 0.05, 0.05], [0.15, 0.05, 0.05]]))
-    field = HybridField(MappingConfig(hash_log2_size=10, **kw))  # type: ignore[arg-type]
+    field = HybridField(MappingConfig().updated(hash_log2_size=10, **kw))  # type: ignore[arg-type]
     field.sync(tree)
     field.priors = torch.linspace(-2.0, 2.0, tree.n_corners)
     points = torch.rand(500, 3) * torch.tensor([0.2, 0.1, 0.1])

@@ -56,7 +56,7 @@ def test_dead_units_pass_no_gradient_and_no_grad_calls_build_no_graph() -> None:
 
 
 def test_the_field_runs_its_default_decoder_through_the_kernels_and_matches_the_torch_path() -> None:
-    cfg = MappingConfig(hash_log2_size=12)
+    cfg = MappingConfig().updated(hash_log2_size=12)
     fast = HybridField(cfg, FAST)
     ref = HybridField(cfg, REFERENCE)
     ref.load_state_dict(fast.state_dict())

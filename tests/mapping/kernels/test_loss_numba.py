@@ -44,11 +44,11 @@ def _batch(seed: int) -> tuple[Samples, torch.Tensor, torch.Tensor, torch.Tensor
 
 @pytest.mark.parametrize(("seed", "rgb_loss"), [(0, "l1"), (1, "l1"), (2, "l1"), (0, "l2"), (1, "l2")])
 def test_fused_render_losses_match_the_torch_reference(seed: int, rgb_loss: str) -> None:
-    cfg = MappingConfig(rgb_loss=rgb_loss)
+    cfg = MappingConfig().updated(rgb_loss=rgb_loss)
     samples, sdf0, colours, rgb_gt, depth_gt = _batch(seed)
     sdf_ref = sdf0.clone().requires_grad_()
     col_ref = colours.clone().requires_grad_()
-    w = render_weights(samples, sdf_ref, cfg.truncation_m, cfg.render_temperature)
+    w = render_weights(samples, sdf_ref, cfg.representation.truncation_m, cfg.rendering.render_temperature)
     live = live_samples(samples, w)
     render = composite(samples, w, col_ref[live], live)
     ref = losses.mapping_losses(samples, sdf_ref, render, rgb_gt, depth_gt, cfg)
@@ -80,26 +80,26 @@ def test_a_batch_without_samples_gives_zero_terms() -> None:
 
 @pytest.mark.parametrize(("rgb_loss", "error"), [("l1", 0.1), ("l2", 0.01)])
 def test_colour_term_is_the_mean_absolute_or_squared_error(rgb_loss: str, error: float) -> None:
-    cfg = MappingConfig(rgb_loss=rgb_loss)
+    cfg = MappingConfig().updated(rgb_loss=rgb_loss)
     R = 4  # one sample a ray, on the surface: each ray renders its sample's colour, 0.1 off in every channel
     samples = Samples(torch.zeros(R, 3), torch.ones(R), torch.arange(R), torch.zeros(R, dtype=torch.long), R)
     colours = torch.full((R, 3), 0.5)
     rgb_gt = colours + torch.tensor([0.1, -0.1, 0.1])
     sdf = torch.zeros(R)
     got = fused.mapping_losses(samples, sdf, lambda p: colours[: len(p)], rgb_gt, torch.ones(R), cfg)
-    w = render_weights(samples, sdf, cfg.truncation_m, cfg.render_temperature)
+    w = render_weights(samples, sdf, cfg.representation.truncation_m, cfg.rendering.render_temperature)
     ref = losses.mapping_losses(samples, sdf, composite(samples, w, colours), rgb_gt, torch.ones(R), cfg)
-    assert float(got["rgb"]) == pytest.approx(cfg.w_rgb * error, rel=1e-5)
-    assert float(ref["rgb"]) == pytest.approx(cfg.w_rgb * error, rel=1e-5)
+    assert float(got["rgb"]) == pytest.approx(cfg.losses.w_rgb * error, rel=1e-5)
+    assert float(ref["rgb"]) == pytest.approx(cfg.losses.w_rgb * error, rel=1e-5)
 
 
 def test_an_unknown_colour_loss_is_refused_by_name() -> None:
-    with pytest.raises(ConfigError, match="mapping.rgb_loss: unknown 'huber'"):
+    with pytest.raises(ConfigError, match="mapping.losses.rgb_loss: unknown 'huber'"):
         losses.check_color_settings("huber")
 
 
 def test_colour_supervision_is_checked_by_name_and_needs_a_colour_source() -> None:
-    with pytest.raises(ConfigError, match="mapping.color_supervision: unknown 'pixels'"):
+    with pytest.raises(ConfigError, match="mapping.losses.color_supervision: unknown 'pixels'"):
         losses.check_color_settings("l2", "pixels")
     with pytest.raises(ConfigError, match="color_prior is false"):
         losses.check_color_settings("l2", "none", color_prior=False)
@@ -110,7 +110,8 @@ def test_colour_supervision_is_checked_by_name_and_needs_a_colour_source() -> No
 @pytest.mark.parametrize("supervision", ["none", "surface", "volume"])
 def test_each_colour_supervision_trains_the_colour_branch_only_when_asked(supervision: str) -> None:
     scene = Scene("plane")
-    cfg = MappingConfig(device="cpu", min_points_per_voxel=3, rays_per_iter=512, hash_log2_size=12, max_iters=2,
+    cfg = MappingConfig().updated(device="cpu", min_points_per_voxel=3, rays_per_iter=512, hash_log2_size=12,
+    max_iters=2,
                         color_rays_per_iter=512, color_supervision=supervision)  # fmt: skip
     mapper = Mapper(cfg)
     before = mapper.field.color_grid.tables.detach().clone()

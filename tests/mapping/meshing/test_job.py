@@ -27,7 +27,7 @@ torch.set_num_threads(2)
 def small_cfg(**kw: object) -> MappingConfig:
     base = dict(device="cpu", min_points_per_voxel=3, rays_per_iter=512, hash_log2_size=14, max_iters=3)
     base.update(kw)
-    return MappingConfig(**base)  # type: ignore[arg-type]
+    return MappingConfig().updated(**base)  # type: ignore[arg-type]
 
 
 def sphere_mapper(n_frames: int, **kw: object) -> tuple[Mapper, Scene, list[np.ndarray]]:
@@ -54,23 +54,26 @@ def test_frozen_field_matches_the_live_one(geo_layers: int) -> None:
     mapper, _, _ = sphere_mapper(2, geo_layers=geo_layers)
     with torch.no_grad():  # a residual large enough that the bound shapes it
         mapper.field.geo_mlp[-1].bias += 0.8
-    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m, backend=mapper.backend)
+    frozen = FrozenField(mapper.field, mapper.cfg.representation.truncation_m, backend=mapper.backend)
     points, ids = probe_points(mapper)
     with torch.no_grad():
-        live = mapper.field.sdf(torch.from_numpy(points), torch.from_numpy(ids)).numpy() * mapper.cfg.truncation_m
+        live = (
+            mapper.field.sdf(torch.from_numpy(points), torch.from_numpy(ids)).numpy()
+            * mapper.cfg.representation.truncation_m
+        )
         live_prior = mapper.field.prior_sdf(torch.from_numpy(points), torch.from_numpy(ids)).numpy()
     np.testing.assert_allclose(frozen.prior(points, ids), live_prior, atol=1e-6)
     np.testing.assert_allclose(frozen.sdf_m(points, ids), live, atol=2e-7)
     assert np.abs(live).max() > 0.01  # a non-trivial field
-    residual = live / mapper.cfg.truncation_m - live_prior
-    assert 0.5 < np.abs(residual).max() < mapper.cfg.residual_bound
+    residual = live / mapper.cfg.representation.truncation_m - live_prior
+    assert 0.5 < np.abs(residual).max() < mapper.cfg.representation.residual_bound
     np.testing.assert_array_equal(frozen.color_u8(points), mapper.color_u8(points))
 
 
 def test_frozen_field_ignores_later_training() -> None:
     # colour from the network alone here; the colour priors are shared, not frozen (next test)
     mapper, scene, poses = sphere_mapper(2, color_prior=False, color_supervision="surface")
-    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m, backend=mapper.backend)
+    frozen = FrozenField(mapper.field, mapper.cfg.representation.truncation_m, backend=mapper.backend)
     points, ids = probe_points(mapper, 5000)
     sdf, rgb = frozen.sdf_m(points, ids), frozen.color_u8(points)
     mapper.integrate(scene.frame(2, poses[2]))  # trains the live field in place
@@ -84,7 +87,7 @@ def test_frozen_field_ignores_later_training() -> None:
 def test_frozen_field_shares_the_colour_priors_instead_of_copying_them() -> None:
     mapper, scene, poses = sphere_mapper(2)
     live = mapper.field.color_prior
-    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m, backend=mapper.backend)
+    frozen = FrozenField(mapper.field, mapper.cfg.representation.truncation_m, backend=mapper.backend)
     assert live is not None and frozen.field.color_prior is not None and mapper.field.color_prior is live
     assert frozen.field.color_prior.sums.data_ptr() == live.sums.data_ptr()  # no copy of ~12 kB a voxel
     points, ids = probe_points(mapper, 5000)
@@ -109,10 +112,12 @@ def test_jobs_on_another_thread_then_a_full_refresh_equal_a_fresh_mesh() -> None
     assert mapper.mesher.stale(mapper.frames_done) > 0
     mesh = mapper.mesh()  # every chunk brought up to the current field
     assert mapper.mesher.stale(mapper.frames_done) == 0 and mapper.mesh_job() is None
-    frozen = FrozenField(mapper.field, mapper.cfg.truncation_m, backend=mapper.backend)
+    frozen = FrozenField(mapper.field, mapper.cfg.representation.truncation_m, backend=mapper.backend)
     meshable = np.arange(mapper.octree.n_voxels)  # every voxel, as the mapper's jobs with the filter on
     cfg = mapper.cfg
-    fresh_mesher = ChunkedMesher(mapper.voxel_size_m, cfg.mesh_resolution, cfg.chunk_voxels, mapper.backend)
+    fresh_mesher = ChunkedMesher(
+        mapper.voxel_size_m, cfg.meshing.mesh_resolution, cfg.meshing.chunk_voxels, mapper.backend
+    )
     coords = mapper.octree.voxel_coords()[meshable]
     strict = ~mapper.priors.initialised(mapper.octree.n_voxels)
     keep = mapper.observed.snapshot(mapper.octree, strict).contains  # faces near measured depth
@@ -149,7 +154,8 @@ def test_surfaces_away_from_measured_depth_are_left_out_of_the_mesh() -> None:
     assert len(moved.faces) < 0.1 * len(on_depth.faces)
     if len(moved.faces):
         gap, _ = cKDTree(seen).query(moved.triangles_center)
-        assert gap.max() < 2 * np.sqrt(3) * mapper.cfg.voxel_size_m / 8  # within the 3x3x3 cells of an observed one
+        vs = mapper.cfg.representation.voxel_size_m
+        assert gap.max() < 2 * np.sqrt(3) * vs / 8  # within the 3x3x3 cells of an observed one
     mapper.mesh_observed_only = False  # nothing else changed: the toggle alone re-meshes every chunk
     assert len(mapper.mesh().faces) > 0.5 * len(on_depth.faces)  # the same surface, kept when the filter is off
 
@@ -171,7 +177,7 @@ def test_edge_voxels_keep_only_faces_on_measured_depth() -> None:
     at_edge = in_edge_voxels(kept)
     assert at_edge.sum() > 50  # measured surface in edge voxels is meshed
     gap, _ = cKDTree(seen).query(kept.triangles_center[at_edge])
-    assert gap.max() < np.sqrt(3) * mapper.cfg.voxel_size_m / 8  # within the face's own observed cell
+    assert gap.max() < np.sqrt(3) * mapper.cfg.representation.voxel_size_m / 8  # within the face's own observed cell
     off = np.abs(scene.sdf(kept.triangles_center[at_edge]))  # grazing views after one frame: mm, not a skirt's cm
     assert np.median(off) < 0.005 and np.percentile(off, 90) < 0.01
     mapper.mesh_observed_only = False
@@ -210,7 +216,7 @@ def shift_residual(mapper: Mapper, tr_units: float) -> None:
     with torch.no_grad():
         last = mapper.field.geo_mlp[-1]
         last.weight.zero_()
-        b = mapper.cfg.residual_bound
+        b = mapper.cfg.representation.residual_bound
         last.bias.fill_(float(b * np.arctanh(tr_units / b)))
     mapper.touched[:] = True
 
@@ -218,11 +224,11 @@ def shift_residual(mapper: Mapper, tr_units: float) -> None:
 def test_mesh_jobs_use_the_configured_band_and_moved_surfaces_within_it_are_meshed() -> None:
     mapper, scene, _ = sphere_mapper(2, mesh_observed_only=False, fine_priors=False)  # 4 cm off: not observed cells
     job = mapper.mesh_job()
-    assert job is not None and job.field.prior_band == mapper.cfg.mesh_prior_band == 3.0
+    assert job is not None and job.field.prior_band == mapper.cfg.meshing.mesh_prior_band == 3.0
     shift_residual(mapper, 0.8)  # 4 cm into the sphere
     mesh = mapper.mesh()
     inside = np.median(scene.sdf(np.asarray(mesh.vertices)))
-    assert abs(inside + 0.8 * mapper.cfg.truncation_m) < 0.01, inside
+    assert abs(inside + 0.8 * mapper.cfg.representation.truncation_m) < 0.01, inside
     assert len(mesh.faces) > 1000
     off, _, _ = sphere_mapper(1, priors=False)
     job = off.mesh_job()

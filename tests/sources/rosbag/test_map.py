@@ -14,9 +14,10 @@ from tests.conftest import shared_data
 from tests.sources.rosbag.test_real import write_tum_bag
 
 TINY = [
-    "--frames", "5", "-q", "--set", "source.downscale=4", "--set", "mapping.max_iters=3",
-    "--set", "mapping.hash_log2_size=14", "--set", "mapping.rays_per_iter=1024", "--set", "mapping.device=cpu",
-    "--set", "mapping.min_points_per_voxel=3",
+    "--frames", "5", "-q", "--set", "source.downscale=4", "--set", "mapping.optimization.max_iters=3",
+    "--set", "mapping.representation.hash_log2_size=14", "--set", "mapping.sampling.rays_per_iter=1024", "--set",
+    "mapping.runtime.device=cpu",
+    "--set", "mapping.representation.min_points_per_voxel=3",
 ]  # fmt: skip
 
 
