@@ -212,6 +212,8 @@ class Mapper:
 
     def _grow(self, new_voxels: np.ndarray) -> None:
         self.field.sync(self.octree)
+        if self.field.fine_prior is not None:  # new voxels' faces start from their older neighbours'
+            self.field.fine_prior.share_faces(new_voxels, self.octree.face_neighbours(new_voxels))
         self.priors.grow(self.octree.n_corners, new_voxels)
         self.touched = np.concatenate([self.touched, np.zeros(self.octree.n_voxels - self.touched.size, bool)])
 

@@ -76,6 +76,38 @@ class FinePrior:
             raise ValueError(f"fine SDF prior lattices of shape {tuple(state.shape)}; expected (V, {self.n**3}, 2)")
         self.state, self._storage = state.to(self.state.device, torch.float32), None
 
+    @torch.no_grad()
+    def share_faces(self, new_voxels: np.ndarray, neighbours: np.ndarray) -> None:
+        """Start new voxels (n,) with their older face neighbours' (n,6) lattice values on the faces they share
+        (-1 = no neighbour; neighbours as `VoxelOctree.face_neighbours` orders them).
+
+        A face's lattice points exist once in each of the two voxels. A voxel allocated late has seen only the
+        frames since, so where an older neighbour averages dozens of frames of free space, the newcomer can hold
+        the one noisy frame that put a surface there: the field jumps across the face and renders show a sliver
+        of surface in open space. Copying the older side's sums and weights once makes the two faces equal, and
+        they stay equal: every later frame that reaches a face point fuses the same value into both voxels."""
+        if len(new_voxels) == 0:
+            return
+        n = self.n
+        lattice = self.state.view(-1, n, n, n, 2)  # (V, x, y, z, 2)
+        is_new = np.zeros(self.state.shape[0], bool)
+        is_new[new_voxels] = True
+        for face in range(6):
+            nb = neighbours[:, face]
+            take = (nb >= 0) & ~is_new[np.maximum(nb, 0)]
+            if not take.any():
+                continue
+            axis, positive = face // 2, face % 2 == 1
+            dev = self.state.device
+            mine = torch.from_numpy(new_voxels[take]).to(dev)
+            theirs = torch.from_numpy(nb[take]).to(dev)
+            own_side, their_side = (n - 1, 0) if positive else (0, n - 1)
+            index: list[slice | int] = [slice(None)] * 3
+            index[axis] = their_side
+            shared = lattice[theirs][(slice(None), *index)]  # (m, n, n, 2)
+            index[axis] = own_side
+            lattice[(mine, *index)] = shared
+
     # ------------------------------------------------------------------------------------------- fusion
     @torch.no_grad()
     def fuse(

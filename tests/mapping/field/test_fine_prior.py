@@ -119,3 +119,31 @@ def test_storage_grows_without_losing_lattices_and_loads_back() -> None:
     assert torch.equal(copy.state, prior.state)
     with pytest.raises(ValueError, match="expected"):
         copy.load(torch.zeros(3, 10, 2))
+
+
+@pytest.mark.parametrize("share", [True, False])
+def test_a_voxel_allocated_late_starts_its_shared_face_from_its_older_neighbour(share: bool) -> None:
+    """Voxel A (z 0.9-1.0 m) sees three frames of open space; voxel B behind it (z 1.0-1.1) exists only from the
+    fourth frame on, which puts a surface at 1.02 m. Shared, the face at z = 1 m holds the same average in both
+    voxels, so the field is continuous there; not shared, B's side holds the fourth frame alone and the field
+    jumps by 0.4 tr across the face (a spurious crossing for any render that samples both sides)."""
+    origins = _voxels(range(0, 1), range(0, 1), range(9, 11))  # A = 0, B = 1
+    T = np.eye(4)
+    T[:3, 3] = [0.05, 0.05, 0.0]
+    prior = _prior(origins[:1])
+    for _ in range(3):
+        prior.fuse(origins[:1], np.full((120, 160), 2.0, np.float32), K, T)
+    prior.grow(2)
+    if share:
+        neighbours = np.array([[-1, -1, -1, -1, 0, -1]])  # B's -z face is A's +z face
+        prior.share_faces(np.array([1]), neighbours)
+    prior.fuse(origins, np.full((120, 160), 1.02, np.float32), K, T)
+    face = torch.tensor([[0.03, 0.06, 1.0], [0.05, 0.05, 1.0], [0.09, 0.01, 1.0]])
+    from_a, _ = prior.blend(origins, face, torch.zeros(3, dtype=torch.long))
+    from_b, _ = prior.blend(origins, face, torch.ones(3, dtype=torch.long))
+    expected_a = (3 * 1.0 + 0.4) / 4  # three frames of open space and the surface 2 cm behind the face
+    assert from_a.numpy() == pytest.approx(np.full(3, expected_a), abs=1e-4)
+    if share:
+        assert from_b.numpy() == pytest.approx(from_a.numpy(), abs=1e-5)
+    else:
+        assert from_b.numpy() == pytest.approx(np.full(3, 0.4), abs=1e-4)

@@ -131,3 +131,14 @@ def test_the_allocation_kernel_matches_the_numpy_reference() -> None:
     empty = octree_numba.cell_stats(np.array([[0, 0, 0], [1e5, 1e5, 1e5]], np.float32), 0.1, 1 << 22)
     assert empty[1].size == 0  # a box too large for the dense grid: the caller sorts instead
     assert fused_keys.size and fused_hit.size == len(cells.coords)
+
+
+def test_face_neighbours_in_the_order_of_face_steps() -> None:
+    octree = VoxelOctree(0.1, min_points=0, expansion=False)
+    cells = np.array([[0, 0, 0], [1, 0, 0], [0, -1, 0], [0, 0, 1], [1, 1, 1]])  # (5,3); the last touches no face
+    points = (cells + 0.5) * 0.1  # one point at each voxel's centre
+    octree.allocate(np.repeat(points, 2, axis=0))
+    ids = octree.voxels.lookup(encode(cells))
+    got = octree.face_neighbours(ids[:1])  # the voxel at the origin
+    assert got.tolist() == [[-1, ids[1], ids[2], -1, -1, ids[3]]]
+    assert (octree.face_neighbours(ids[4:]) == -1).all()
