@@ -486,11 +486,15 @@ class AnytimeConfig:
     frames, then goes on after the stream ends until the loss stops improving (h2viz.mapping.anytime)."""
 
     opt_share: float = 0.25
-    """Least share of the mapping thread's time that optimisation keeps while frames wait to be integrated (the
-    rest goes to integration; with no frame waiting, optimisation has all of it)."""
+    """Least share of the mapping thread's time that optimisation keeps while frames wait to be integrated and
+    integration is not catching up (see catch_up_frames; with no frame waiting, optimisation has all of it)."""
     backlog_frames: int = 30
     """Frames that may wait to be integrated; a frame arriving when this many wait is dropped and counted (the
     stream outruns integration itself)."""
+    catch_up_frames: int = 3
+    """With this many frames waiting, integration takes every turn until fewer wait (optimisation's share waits),
+    so that a stream integration alone keeps up with loses no frame; a frame then waits at most about this many
+    frame times plus a step."""
     plateau_window: int = 50
     """After the stream: optimisation steps per window whose mean loss is compared with the best so far..."""
     plateau_patience: int = 3

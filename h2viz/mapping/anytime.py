@@ -6,9 +6,9 @@ priors, colour prior, observed cells, keyframe decision; `Mapper.add_frame`) and
 left between frames (`Mapper.live_step`, on the newest frame and its coverage-selected keyframes), instead of a
 fixed number of steps per frame that makes a 30 Hz stream drop most of its frames.
 
-`AnytimeSchedule` makes the decision (integrate the waiting frame, or take a step) from the seconds each costs, so
-that integration comes first while optimisation keeps at least `opt_share` of the mapping thread's time when frames
-arrive faster than both fit. `Plateau` ends the optimisation after the stream ends once the loss stops improving.
+`AnytimeSchedule` makes the decision (integrate the waiting frame, or take a step) from the seconds each costs and
+the frames waiting, so that integration comes first (a stream integration keeps up with loses no frame) while
+optimisation keeps at least `opt_share` of the mapping thread's time when integration is not catching up. `Plateau` ends the optimisation after the stream ends once the loss stops improving.
 Neither measures time itself: callers pass the seconds in (tests drive them with a fake clock).
 """
 
@@ -43,6 +43,8 @@ def check_anytime(cfg: AnytimeConfig) -> None:
         raise ConfigError(f"anytime.opt_share must lie in [0, 1), got {cfg.opt_share}")
     if cfg.backlog_frames < 1:
         raise ConfigError(f"anytime.backlog_frames must be >= 1, got {cfg.backlog_frames}")
+    if cfg.catch_up_frames < 1:
+        raise ConfigError(f"anytime.catch_up_frames must be >= 1, got {cfg.catch_up_frames}")
     if cfg.plateau_window < 1 or cfg.plateau_patience < 1:
         raise ConfigError("anytime.plateau_window and anytime.plateau_patience must be >= 1")
     if cfg.plateau_tol < 0.0 or cfg.sharpen_max_s < 0.0:
@@ -50,28 +52,41 @@ def check_anytime(cfg: AnytimeConfig) -> None:
 
 
 class AnytimeSchedule:
-    """Integration first, with optimisation owed `opt_share` of the mapping time.
+    """Integration first, with optimisation owed `opt_share` of the mapping time unless integration is catching up.
 
     Every integration of c seconds makes optimisation owed c * share / (1 - share) seconds. A waiting frame is
     integrated unless a step is owed; a step taken while one is owed pays its seconds off, and what it overpays
     (a step is longer than what one frame owes) is credit the next integrations use first. With no frame waiting,
-    steps run freely and bank nothing, so that when frames come faster again they are integrated at once. Over any
-    stretch where frames keep waiting, steps therefore take `opt_share` of the time and integration the rest.
+    steps run freely and bank nothing, so that when frames come faster again they are integrated at once.
+
+    Catching up: with `catch_up` or more frames waiting (but fewer than a full `backlog`), frames are integrated
+    whatever is owed, so a stream that integration alone keeps up with loses no frame to the backlog; steps then
+    take the time integration leaves (they resume as soon as fewer frames wait), and those integrations owe none. When integration
+    cannot keep up even alone, the backlog fills, frames are dropped anyway, and steps keep `opt_share` of the time
+    so that the map is still optimised.
     """
 
-    def __init__(self, opt_share: float) -> None:
+    def __init__(self, opt_share: float, catch_up: int = 3, backlog: int = 30) -> None:
         if not 0.0 <= opt_share < 1.0:
             raise ConfigError(f"anytime.opt_share must lie in [0, 1), got {opt_share}")
+        if not 1 <= catch_up:
+            raise ConfigError(f"anytime.catch_up_frames must be >= 1, got {catch_up}")
         self.ratio = opt_share / (1.0 - opt_share)
+        self.catch_up, self.backlog = int(catch_up), int(backlog)
         self.owed_s = 0.0  # > 0: step time owed; < 0: credit from a step that overpaid
+        self._catching_up = False  # the last decision was made catching up
         self.integrated = 0
         self.steps = 0
         self.integrate_s = 0.0
         self.step_s = 0.0
 
-    def next(self, frame_waiting: bool, can_step: bool) -> Action:
-        """What to do now: a frame is waiting; the map has something to optimise."""
-        if frame_waiting and (self.owed_s <= 0.0 or not can_step):
+    def next(self, waiting: int, can_step: bool) -> Action:
+        """What to do now: `waiting` frames wait to be integrated (a bool counts as 0 or 1); the map has something
+        to optimise."""
+        waiting = int(waiting)
+        catching_up = self.catch_up <= waiting < self.backlog
+        self._catching_up = catching_up
+        if waiting and (self.owed_s <= 0.0 or not can_step or catching_up):
             return Action.INTEGRATE
         if can_step:
             return Action.STEP
@@ -80,7 +95,8 @@ class AnytimeSchedule:
     def did_integrate(self, seconds: float) -> None:
         self.integrated += 1
         self.integrate_s += seconds
-        self.owed_s += seconds * self.ratio
+        if not self._catching_up:  # integrations that catch up owe nothing (else the debt would outlive the stream)
+            self.owed_s += seconds * self.ratio
 
     def did_step(self, seconds: float) -> None:
         self.steps += 1

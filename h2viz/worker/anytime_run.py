@@ -59,7 +59,7 @@ class AnytimeRun:
         check_anytime(cfg)
         self.mapper, self.feed, self.cfg, self.clock = mapper, feed, cfg, clock
         self.autosave, self.earlier = autosave, list(earlier or [])
-        self.schedule = AnytimeSchedule(cfg.opt_share)
+        self.schedule = AnytimeSchedule(cfg.opt_share, cfg.catch_up_frames, cfg.backlog_frames)
         self.plateau = plateau_from(cfg)
         self.stats: list[FrameStats] = []
         self.totals = AnytimeTotals()
@@ -73,7 +73,7 @@ class AnytimeRun:
         frames integrated since the last autosave are autosaved at the end."""
         try:
             while True:
-                action = self.schedule.next(self.feed.ready(), bool(self.stats))
+                action = self.schedule.next(self.feed.waiting(), bool(self.stats))
                 if action is Action.STEP:
                     self._step(self.mapper.live_step)
                     continue

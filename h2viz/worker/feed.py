@@ -90,6 +90,11 @@ class FrameFeed:
         with self._cond:
             return bool(self._frames)
 
+    def waiting(self) -> int:
+        """How many frames (and the end of the stream) wait to be taken."""
+        with self._cond:
+            return len(self._frames)
+
     def take(self, timeout_s: float) -> Any:
         """The next frame, END when the stream is over, or None when nothing arrived in time."""
         with self._cond:

@@ -86,7 +86,9 @@ class MappingWorker(CommandServing):
         check_anytime(cfg.anytime)
         self._resume_after, earlier = resumed or (-1, [])
         self._feed = self._open_feed(self._resume_after)
-        self._schedule = AnytimeSchedule(cfg.anytime.opt_share)
+        self._schedule = AnytimeSchedule(
+            cfg.anytime.opt_share, cfg.anytime.catch_up_frames, cfg.anytime.backlog_frames
+        )
         self._plateau = plateau_from(cfg.anytime)
         self._phase = ""  # real-time mode: a Phase value ("" in every-frame mode)
         self._opt_steps = self._newest_steps = 0  # real-time steps in all, and on the newest frame
@@ -274,7 +276,7 @@ class MappingWorker(CommandServing):
         """Integrate the waiting frame, or take one optimisation step (AnytimeSchedule decides)."""
         if not self._phase:
             self._phase = Phase.STREAMING.value
-        action = self._schedule.next(self._feed.ready(), self.mapper.frames_done > 0)
+        action = self._schedule.next(self._feed.waiting(), self.mapper.frames_done > 0)
         if action is Action.STEP and time.monotonic() - self._last_frame_t < STREAM_PAUSE_S:
             self._timed_step(self.mapper.live_step)
             self._newest_steps += 1

@@ -59,8 +59,12 @@ class StoredView:
     def of(index: int, T_world_camera: np.ndarray, K: np.ndarray, rgb: np.ndarray, depth_m: np.ndarray) -> StoredView:
         h, w = depth_m.shape[0] // 2, depth_m.shape[1] // 2
         half = cv2.resize(rgb[: 2 * h, : 2 * w], (w, h), interpolation=cv2.INTER_AREA)
-        blocks = depth_m[: 2 * h, : 2 * w].reshape(h, 2, w, 2)  # (h,2,w,2)
-        depth = np.where(np.all(blocks > 0, axis=(1, 3)), blocks.mean(axis=(1, 3)), 0.0).astype(np.float32)
+        d = np.asarray(depth_m, np.float32)
+        corners = (d[0 : 2 * h : 2, 0 : 2 * w : 2], d[0 : 2 * h : 2, 1 : 2 * w : 2],
+                   d[1 : 2 * h : 2, 0 : 2 * w : 2], d[1 : 2 * h : 2, 1 : 2 * w : 2])  # fmt: skip  # 4 x (h,w)
+        valid = (corners[0] > 0) & (corners[1] > 0) & (corners[2] > 0) & (corners[3] > 0)  # (h,w)
+        mean = (corners[0] + corners[1] + corners[2] + corners[3]) * np.float32(0.25)
+        depth = np.where(valid, mean, np.float32(0.0))
         return StoredView(index, np.asarray(T_world_camera, np.float64), np.asarray(K, np.float64), rgb, half, depth)
 
     @property
@@ -126,6 +130,7 @@ class ColorViews:
         self.budget_bytes = int(budget_mb * 2**20)
         self.field_weight = float(field_weight)
         self.views: tuple[StoredView, ...] = ()  # replaced, never changed in place: renders may read it meanwhile
+        self._poses = np.zeros((0, 4, 4))  # (n,4,4) the views' T_world_camera, for `add`'s spacing test
 
     @property
     def enabled(self) -> bool:
@@ -140,9 +145,12 @@ class ColorViews:
         redundant views (those nearest another) until the store fits its budget."""
         if not self.enabled:
             return
-        T = frame.T_world_camera
-        if any(view_distance(T, v.T_world_camera) < MIN_SPACING for v in self.views):
-            return
+        T = np.asarray(frame.T_world_camera, np.float64)
+        if self.views:  # ranking distances to every stored view at once
+            poses = self._poses  # (n,4,4)
+            d = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1) + ROTATION_M * (1.0 - poses[:, :3, 2] @ T[:3, 2])
+            if float(d.min()) < MIN_SPACING:
+                return
         self.replace((*self.views, StoredView.of(frame.index, T, frame.K, frame.rgb, frame.depth_m)))
 
     def replace(self, views: tuple[StoredView, ...]) -> None:
@@ -150,6 +158,7 @@ class ColorViews:
         views = list(views)
         while self.budget_bytes and len(views) > 1 and sum(v.nbytes for v in views) > self.budget_bytes:
             views.pop(self._most_redundant(views))
+        self._poses = np.stack([v.T_world_camera for v in views]) if views else np.zeros((0, 4, 4))  # (n,4,4)
         self.views = tuple(views)
 
     @staticmethod

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from h2viz.mapping.kernels.jit import njit
+from h2viz.mapping.kernels.jit import njit, parallel_region
 from h2viz.mapping.kernels.voxel_walk_numba import lookup
 
 
@@ -51,44 +51,57 @@ def _voxel(p: np.ndarray, vs: float, keys: np.ndarray, ids: np.ndarray, tolerant
     return -1
 
 
-@njit
+@njit(parallel=True)
+def _splat_kernel(
+    points: np.ndarray, rgb: np.ndarray, keys: np.ndarray, ids: np.ndarray, origin: np.ndarray, vs: float, sub: int,
+    sums: np.ndarray, n_parts: int,
+) -> None:  # fmt: skip
+    """sums (V*(sub+1)^3, 4) += colours rgb (N,3) in [0,1] at points (N,3), trilinear weights; points outside the
+    map are skipped. A point writes only its own voxel's lattice (a face's points exist once in each voxel), so
+    `n_parts` threads share the voxels (voxel v to thread v mod n_parts) and each voxel's lattice takes its points in
+    their order: the sums are those of a serial splat. Scalar code with no array made per point (small arrays cost
+    ~5x the splat itself at 160k points a frame)."""
+    inv_cell = sub / vs
+    n = sub + 1
+    n_points = points.shape[0]
+    n_voxels = min(origin.shape[0], sums.shape[0] // (n * n * n))
+    voxel = np.empty(n_points, np.int64)  # (N,) each point's voxel, -1 outside the map
+    for i in numba.prange(n_points):
+        v = lookup(keys, ids, int(np.floor(points[i, 0] / vs)), int(np.floor(points[i, 1] / vs)),
+                   int(np.floor(points[i, 2] / vs)))  # fmt: skip
+        voxel[i] = v if v < n_voxels else -1
+    for part in numba.prange(n_parts):
+        for i in range(n_points):
+            v = voxel[i]
+            if v < 0 or v % n_parts != part:
+                continue
+            x = min(max((points[i, 0] - origin[v, 0]) * inv_cell, 0.0), float(sub))
+            y = min(max((points[i, 1] - origin[v, 1]) * inv_cell, 0.0), float(sub))
+            z = min(max((points[i, 2] - origin[v, 2]) * inv_cell, 0.0), float(sub))
+            bx, by, bz = min(int(np.floor(x)), sub - 1), min(int(np.floor(y)), sub - 1), min(int(np.floor(z)), sub - 1)
+            fx, fy, fz = x - bx, y - by, z - bz
+            r, g, b = rgb[i, 0], rgb[i, 1], rgb[i, 2]
+            base = v * n * n * n
+            for dx in range(2):
+                wx = fx if dx else 1.0 - fx
+                for dy in range(2):
+                    wy = fy if dy else 1.0 - fy
+                    for dz in range(2):
+                        w = wx * wy * (fz if dz else 1.0 - fz)
+                        k = base + ((bx + dx) * n + by + dy) * n + bz + dz
+                        sums[k, 0] += w * r
+                        sums[k, 1] += w * g
+                        sums[k, 2] += w * b
+                        sums[k, 3] += w
+
+
 def splat(
     points: np.ndarray, rgb: np.ndarray, keys: np.ndarray, ids: np.ndarray, origin: np.ndarray, vs: float, sub: int,
     sums: np.ndarray,
 ) -> None:  # fmt: skip
-    """sums (V*(sub+1)^3, 4) += colours rgb (N,3) in [0,1] at points (N,3), trilinear weights; points outside the
-    map are skipped. Serial: neighbouring pixels write the same lattice points. Scalar code with no array made per
-    point (`_lattice`'s small arrays cost ~5x the splat itself at 160k points a frame)."""
-    inv_cell = sub / vs
-    n = sub + 1
-    n_voxels = min(origin.shape[0], sums.shape[0] // (n * n * n))
-    lx, ly, lz, lv = 0, 0, 0, -2  # the last cell looked up and its voxel: neighbouring pixels share it
-    for i in range(points.shape[0]):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        cx, cy, cz = int(np.floor(px / vs)), int(np.floor(py / vs)), int(np.floor(pz / vs))
-        if lv == -2 or cx != lx or cy != ly or cz != lz:
-            lx, ly, lz, lv = cx, cy, cz, lookup(keys, ids, cx, cy, cz)
-        v = lv
-        if v < 0 or v >= n_voxels:
-            continue
-        x = min(max((px - origin[v, 0]) * inv_cell, 0.0), float(sub))
-        y = min(max((py - origin[v, 1]) * inv_cell, 0.0), float(sub))
-        z = min(max((pz - origin[v, 2]) * inv_cell, 0.0), float(sub))
-        bx, by, bz = min(int(np.floor(x)), sub - 1), min(int(np.floor(y)), sub - 1), min(int(np.floor(z)), sub - 1)
-        fx, fy, fz = x - bx, y - by, z - bz
-        r, g, b = rgb[i, 0], rgb[i, 1], rgb[i, 2]
-        base = v * n * n * n
-        for dx in range(2):
-            wx = fx if dx else 1.0 - fx
-            for dy in range(2):
-                wy = fy if dy else 1.0 - fy
-                for dz in range(2):
-                    w = wx * wy * (fz if dz else 1.0 - fz)
-                    k = base + ((bx + dx) * n + by + dy) * n + bz + dz
-                    sums[k, 0] += w * r
-                    sums[k, 1] += w * g
-                    sums[k, 2] += w * b
-                    sums[k, 3] += w
+    """`_splat_kernel` under the package's parallel-kernel lock."""
+    with parallel_region() as threads:
+        _splat_kernel(points, rgb, keys, ids, origin, vs, sub, sums, threads)
 
 
 @njit(parallel=True)

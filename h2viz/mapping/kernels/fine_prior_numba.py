@@ -6,51 +6,62 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from h2viz.mapping.kernels.jit import njit
+from h2viz.mapping.kernels.jit import njit, parallel_region
 
 
 @njit(parallel=True)
-def fuse(
+def _fuse_kernel(
     origin: np.ndarray, depth: np.ndarray, K: np.ndarray, T_camera_world: np.ndarray, vs: float, sub: int,
     tr: float, state: np.ndarray,
 ) -> None:  # fmt: skip
     """state (V*(sub+1)^3, 2) += (truncated SDF in tr units, 1) at every lattice point of voxels with origins
-    (V,3) that projects onto valid depth and lies at most tr behind it. Voxels whose bounding sphere leaves the
-    image are skipped whole; each voxel's lattice is written by one thread."""
+    (V,3) that projects onto valid depth and lies at most tr behind it.
+
+    Voxels whose bounding sphere leaves the image are skipped whole, and the threads then share the voxels in
+    view (allocated together, they would otherwise fall to one thread); each voxel's lattice is written by one
+    thread. A lattice point's camera coordinates are its row's start plus k steps along the lattice's z axis (no
+    matrix product per point), and one division per point projects it."""
     n = sub + 1
     h, w = depth.shape
     cell = vs / sub
     radius = 0.5 * np.sqrt(3.0) * vs
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     R, t = T_camera_world[:3, :3], T_camera_world[:3, 3]
+    in_view = np.zeros(origin.shape[0], np.bool_)
     for v in numba.prange(origin.shape[0]):
-        c = np.empty(3)
-        for a in range(3):
-            c[a] = origin[v, a] + 0.5 * vs
-        zc = R[2, 0] * c[0] + R[2, 1] * c[1] + R[2, 2] * c[2] + t[2]
+        hx, hy, hz = origin[v, 0] + 0.5 * vs, origin[v, 1] + 0.5 * vs, origin[v, 2] + 0.5 * vs
+        zc = R[2, 0] * hx + R[2, 1] * hy + R[2, 2] * hz + t[2]
         if zc < -radius:
             continue
         if zc > radius:  # the whole voxel is in front of the camera: cull by its projected sphere
-            xc = R[0, 0] * c[0] + R[0, 1] * c[1] + R[0, 2] * c[2] + t[0]
-            yc = R[1, 0] * c[0] + R[1, 1] * c[1] + R[1, 2] * c[2] + t[1]
+            xc = R[0, 0] * hx + R[0, 1] * hy + R[0, 2] * hz + t[0]
+            yc = R[1, 0] * hx + R[1, 1] * hy + R[1, 2] * hz + t[1]
             uc, vc = fx * xc / zc + cx, fy * yc / zc + cy
             r_px = max(fx, fy) * radius / (zc - radius)
             if uc < -r_px or uc > w + r_px or vc < -r_px or vc > h + r_px:
                 continue
+        in_view[v] = True
+    visible = np.nonzero(in_view)[0]
+    for q in numba.prange(visible.shape[0]):
+        v = visible[q]
         base = v * n * n * n
+        ox, oy, oz = float(origin[v, 0]), float(origin[v, 1]), float(origin[v, 2])
         for i in range(n):
-            px = origin[v, 0] + i * cell
+            px = ox + i * cell
             for j in range(n):
-                py = origin[v, 1] + j * cell
+                py = oy + j * cell
+                # camera coordinates of lattice point (i, j, 0) and the step to (i, j, k + 1)
+                x0 = R[0, 0] * px + R[0, 1] * py + R[0, 2] * oz + t[0]
+                y0 = R[1, 0] * px + R[1, 1] * py + R[1, 2] * oz + t[1]
+                z0 = R[2, 0] * px + R[2, 1] * py + R[2, 2] * oz + t[2]
+                row = base + (i * n + j) * n
                 for k in range(n):
-                    pz = origin[v, 2] + k * cell
-                    z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+                    z = z0 + k * (R[2, 2] * cell)
                     if z <= 1e-6:
                         continue
-                    x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-                    y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-                    u = int(np.round(fx * x / z + cx))
-                    vv = int(np.round(fy * y / z + cy))
+                    inv_z = 1.0 / z
+                    u = int(np.round(fx * (x0 + k * (R[0, 2] * cell)) * inv_z + cx))
+                    vv = int(np.round(fy * (y0 + k * (R[1, 2] * cell)) * inv_z + cy))
                     if u < 0 or u >= w or vv < 0 or vv >= h:
                         continue
                     d = depth[vv, u]
@@ -59,9 +70,17 @@ def fuse(
                     sdf = d - z
                     if sdf < -tr:
                         continue
-                    idx = base + (i * n + j) * n + k
-                    state[idx, 0] += min(sdf, tr) / tr
-                    state[idx, 1] += 1.0
+                    state[row + k, 0] += min(sdf, tr) / tr
+                    state[row + k, 1] += 1.0
+
+
+def fuse(
+    origin: np.ndarray, depth: np.ndarray, K: np.ndarray, T_camera_world: np.ndarray, vs: float, sub: int,
+    tr: float, state: np.ndarray,
+) -> None:  # fmt: skip
+    """`_fuse_kernel` under the package's parallel-kernel lock."""
+    with parallel_region():
+        _fuse_kernel(origin, depth, K, T_camera_world, vs, sub, tr, state)
 
 
 @njit(parallel=True)

@@ -16,7 +16,7 @@ from h2viz.mapping.kernels.jit import njit
 from h2viz.mapping.kernels.voxel_walk_numba import build_table, lookup
 from h2viz.mapping.meshing.observed import SUB
 
-__all__ = ["build_table", "contains_kernel"]  # build_table: the voxel hash table contains_kernel looks voxels up in
+__all__ = ["build_table", "contains_kernel", "mark_kernel"]  # build_table: the voxel hash table contains_kernel looks voxels up in
 _SLOTS = 1024  # voxels whose neighbours are remembered (a power of two; a chunk has 512)
 
 
@@ -75,3 +75,21 @@ def contains_kernel(
                 break
         out[i] = hit
     return out
+
+
+@njit
+def mark_kernel(points: np.ndarray, cell_m: float, table_keys: np.ndarray, table_ids: np.ndarray, words: np.ndarray) -> None:
+    """words (V,8) uint64 |= the bits of the cells that points (N,3) fall in, where their voxel is in the table
+    (`ObservedCells.add`'s NumPy code is the reference). Neighbouring points share a voxel: its lookup is reused."""
+    last_x, last_y, last_z, last_v = np.iinfo(np.int64).min, 0, 0, -1
+    for i in range(points.shape[0]):
+        cx = int(np.floor(points[i, 0] / cell_m))
+        cy = int(np.floor(points[i, 1] / cell_m))
+        cz = int(np.floor(points[i, 2] / cell_m))
+        ux, uy, uz = cx // SUB, cy // SUB, cz // SUB  # floor division, as the reference's shift
+        if ux != last_x or uy != last_y or uz != last_z:
+            last_x, last_y, last_z = ux, uy, uz
+            last_v = lookup(table_keys, table_ids, ux, uy, uz)
+        if last_v < 0 or last_v >= words.shape[0]:
+            continue
+        words[last_v, cx % SUB] |= np.uint64(1) << np.uint64((cy % SUB) * SUB + cz % SUB)

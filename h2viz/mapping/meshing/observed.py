@@ -69,6 +69,7 @@ class ObservedCells:
         self.cell_m = float(voxel_size_m) / SUB
         arrays = None if backend is None else backend.array_kernels
         self.fast = None if arrays is None else arrays.support  # the snapshots' compiled test (None: NumPy)
+        self._hash = None if arrays is None else arrays.walk.voxel_hash  # the octree's cached voxel hash table
         self.words = np.zeros((0, SUB), dtype=np.uint64)  # (V,8)
 
     def grow(self, n_voxels: int) -> None:
@@ -81,6 +82,12 @@ class ObservedCells:
         if len(points) == 0:
             return
         self.grow(octree.n_voxels)
+        if self.fast is not None and self._hash is not None:
+            table = self._hash(octree)
+            pts = np.ascontiguousarray(points)
+            cell = pts.dtype.type(self.cell_m) if pts.dtype == np.float32 else self.cell_m  # NumPy's division
+            self.fast.mark_kernel(pts, cell, *table, self.words)
+            return
         _, vid, word, bit = _in_voxels(octree.voxels, _distinct(np.floor(points / self.cell_m).astype(np.int64)))
         np.bitwise_or.at(self.words, (vid, word), bit)
 

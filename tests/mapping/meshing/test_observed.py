@@ -165,3 +165,21 @@ def test_compiled_test_matches_the_dilation_reference(with_strict: bool) -> None
         assert 0.05 < want.mean() < 0.5  # both answers well represented
         np.testing.assert_array_equal(got, want)
     assert support.contains(np.zeros((0, 3))).shape == (0,)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@needs_numba
+def test_compiled_marking_sets_the_same_bits_as_numpy(dtype: type) -> None:
+    """The compiled `add` (one loop, voxels from the hash table) against NumPy's: points in and out of allocated
+    voxels, on both sides of the origin and 20 km out, float32 (a frame's points) and float64."""
+    rng = np.random.default_rng(5)
+    for origin in (np.zeros(3), np.array([20_000.0, -15_000.0, 3.0])):
+        octree, points = _octree(rng)
+        octree = VoxelOctree(VS, min_points=0, expansion=False)
+        octree.allocate(points + origin)
+        marks = (origin + np.concatenate([points.repeat(50, axis=0), rng.uniform(-0.6, 0.6, (4000, 3))])).astype(dtype)
+        fast, numpy = ObservedCells(VS, FAST), ObservedCells(VS)
+        fast.add(octree, marks)
+        numpy.add(octree, marks)
+        assert fast.words.any() and np.count_nonzero(fast.words) > 100
+        np.testing.assert_array_equal(fast.words, numpy.words)
