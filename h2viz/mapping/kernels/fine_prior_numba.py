@@ -60,8 +60,8 @@ def _fuse_kernel(
                     if z <= 1e-6:
                         continue
                     inv_z = 1.0 / z
-                    u = int(np.round(fx * (x0 + k * (R[0, 2] * cell)) * inv_z + cx))
-                    vv = int(np.round(fy * (y0 + k * (R[1, 2] * cell)) * inv_z + cy))
+                    u = int(np.rint(fx * (x0 + k * (R[0, 2] * cell)) * inv_z + cx))  # rint: round half to even
+                    vv = int(np.rint(fy * (y0 + k * (R[1, 2] * cell)) * inv_z + cy))
                     if u < 0 or u >= w or vv < 0 or vv >= h:
                         continue
                     d = depth[vv, u]
