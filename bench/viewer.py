@@ -571,7 +571,9 @@ def main() -> None:
                 )
                 run.repeat = repeat
                 runs.append(run)
-                print(f"{run.label}: {run.frames} frames mapped in {run.mapping_s:.1f} s", file=sys.stderr)
+                feed = worker._feed  # real-time mode: frames the stream delivered that were not integrated
+                dropped = f" ({feed.passed_over} read too late, {feed.overflowed} beyond the backlog)"
+                print(f"{run.label}: {run.frames} frames mapped in {run.mapping_s:.1f} s{dropped}", file=sys.stderr)
                 if not renders and not args.no_renders:
                     renders = render_times(worker)
                 if browser is not None:

@@ -29,7 +29,7 @@ class WorkerSettings:
     realtime: bool = False  # play at the stream's rate; integrate every frame, optimise between frames
     stride: int = 1  # use every k-th frame of the source
     mesh_every: int = 5  # with mesh_update_hz = 0: mesh every this many frames (0 = when idle and at the end)
-    mesh_update_hz: float = 2.0  # mesh after every frame; publish mesh changes at most this often (0 = no live)
+    mesh_update_hz: float = 4.0  # mesh after every frame; publish mesh changes at most this often (0 = no live)
     metrics_every: int = 20  # refresh ground-truth metrics every this many frames (0 = at the end)
     metrics_points: int = 20_000  # surface samples per mesh for the periodic metrics
 

@@ -94,6 +94,7 @@ class MappingWorker(CommandServing):
         self._opt_steps = self._newest_steps = 0  # real-time steps in all, and on the newest frame
         self._sharpen_s = 0.0
         self._last_frame_t = time.monotonic()
+        self._mesh_submitted_t = 0.0  # time.monotonic() of the last mesh job handed over
         self._commands: queue.Queue[Command] = queue.Queue()
         self._stop = threading.Event()
         self._paused = cfg.viewer.start_paused
@@ -497,7 +498,7 @@ class MappingWorker(CommandServing):
         frame's would double its time); frames that ended while the mesh thread was busy go to it as soon as it is
         free, not at the end of the next frame or after the renders served between frames: those waits were the
         tail of the mesh latency."""
-        if self.live:
+        if self.live and not self._streaming():  # a live stream's integration never waits for the mesh
             self.meshing.catch_up(MESH_DEADLINE_S, MESH_WAIT_MAX_S)
         if self._unmeshed and self.live and self._mesh_due() and not self.meshing.busy:
             self._submit_mesh(REFRESH_S)
@@ -533,10 +534,20 @@ class MappingWorker(CommandServing):
             requests.settle(self._steps.popleft(), stats)
             self._feed.hold(self._paused and not self._steps)
 
+    def _streaming(self) -> bool:
+        """Real-time mode while frames arrive."""
+        return self._phase == Phase.STREAMING.value
+
     def _mesh_due(self) -> bool:
-        """After a frame: live updates (mesh_update_hz > 0) mesh every frame, else every mesh_every frames."""
+        """After a frame: live updates (mesh_update_hz > 0) mesh every frame, else every mesh_every frames. While
+        a real-time stream arrives, live updates come at most mesh_update_hz times a second: a job per frame at
+        30 Hz would keep the mesh thread busy and take the cores integration needs."""
         s = self.settings
-        return s.mesh_update_hz > 0 or self._mesh_dirty or (s.mesh_every > 0 and self._unmeshed >= s.mesh_every)
+        if self._mesh_dirty:
+            return True
+        if s.mesh_update_hz > 0:
+            return not self._streaming() or time.monotonic() - self._mesh_submitted_t >= 1.0 / s.mesh_update_hz
+        return s.mesh_every > 0 and self._unmeshed >= s.mesh_every
 
     def _submit_mesh(self, refresh_s: float, whole: bool = False) -> None:
         """Freeze the field and hand the mesh thread a job (nothing when the mesh is up to date)."""
@@ -548,6 +559,7 @@ class MappingWorker(CommandServing):
             return
         self._unmeshed, self._mesh_dirty = 0, False
         if job is not None:
+            self._mesh_submitted_t = time.monotonic()
             self.meshing.submit(job)
 
     def _remesh(self) -> None:
