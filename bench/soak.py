@@ -30,11 +30,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench.common import ROOT, command_line, fmt, markdown_table, write_doc
-from h2viz.config import Config, apply_overrides, load_config
-from h2viz.sources.base import FrameSource
-from h2viz.sources.synthetic import SyntheticSource
-from h2viz.types import RgbdFrame
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as `python bench/soak.py` from anywhere
+
+from bench.common import ROOT, command_line, fmt, markdown_table, write_doc  # noqa: E402
+from h2viz.config import Config, apply_overrides, load_config  # noqa: E402
+from h2viz.sources.base import FrameSource  # noqa: E402
+from h2viz.sources.synthetic import SyntheticSource  # noqa: E402
+from h2viz.types import RgbdFrame  # noqa: E402
 
 CLIENTS = 3
 TIMEOUT_S = 4 * 3600
