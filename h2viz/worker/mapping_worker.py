@@ -48,6 +48,7 @@ IDLE_REFRESH_S = 1.0  # same while mapping is paused or finished (until every ch
 REFINE_SLICE = 5  # refinement steps between two looks at commands, renders and the mesh
 MESH_DEADLINE_S = 0.3  # a mesh job still on its required chunks this long after submission gets the cores to itself
 MESH_WAIT_MAX_S = 2.0  # ... for at most this long at a time
+STREAM_MESH_WAIT_S = 0.03  # ... or, while a real-time stream arrives and no frame waits, this long (a frame's time)
 REQUEST_FAULT_AUTOSAVE_S = 60.0  # a failing render or export autosaves at most this often (renders come in streams)
 STATS_KEPT = 2000  # per-frame stats the snapshots carry (the plots show the latest); older ones are counted only
 STREAM_PAUSE_S = 1.0  # real-time mode: no frame for this long, and the steps sharpen every keyframe instead
@@ -495,11 +496,14 @@ class MappingWorker(CommandServing):
     def _between_steps(self) -> None:
         """(mapping thread, between optimisation steps and render bands) A mesh job that is late with a frame's
         changes gets the cores until it has them (on two cores, mapping beside a large job such as the first
-        frame's would double its time); frames that ended while the mesh thread was busy go to it as soon as it is
+        frame's would double its time; while a real-time stream arrives, only when no frame waits and for a frame's
+        time at most); frames that ended while the mesh thread was busy go to it as soon as it is
         free, not at the end of the next frame or after the renders served between frames: those waits were the
         tail of the mesh latency."""
-        if self.live and not self._streaming():  # a live stream's integration never waits for the mesh
+        if self.live and not self._streaming():
             self.meshing.catch_up(MESH_DEADLINE_S, MESH_WAIT_MAX_S)
+        elif self.live and self._feed.waiting() == 0:  # a live stream: only the slack, never a waiting frame's time
+            self.meshing.catch_up(MESH_DEADLINE_S, STREAM_MESH_WAIT_S)
         if self._unmeshed and self.live and self._mesh_due() and not self.meshing.busy:
             self._submit_mesh(REFRESH_S)
 
