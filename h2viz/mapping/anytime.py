@@ -8,8 +8,9 @@ fixed number of steps per frame that makes a 30 Hz stream drop most of its frame
 
 `AnytimeSchedule` makes the decision (integrate the waiting frame, or take a step) from the seconds each costs and
 the frames waiting, so that integration comes first (a stream integration keeps up with loses no frame) while
-optimisation keeps at least `opt_share` of the mapping thread's time when integration is not catching up. `Plateau` ends the optimisation after the stream ends once the loss stops improving.
-Neither measures time itself: callers pass the seconds in (tests drive them with a fake clock).
+optimisation keeps at least `opt_share` of the mapping thread's time when integration is not catching up.
+`Plateau` ends the optimisation after the stream ends once the loss stops improving. Neither measures time
+itself: callers pass the seconds in (tests drive them with a fake clock).
 """
 
 from __future__ import annotations
@@ -61,9 +62,9 @@ class AnytimeSchedule:
 
     Catching up: with `catch_up` or more frames waiting (but fewer than a full `backlog`), frames are integrated
     whatever is owed, so a stream that integration alone keeps up with loses no frame to the backlog; steps then
-    take the time integration leaves (they resume as soon as fewer frames wait), and those integrations owe none. When integration
-    cannot keep up even alone, the backlog fills, frames are dropped anyway, and steps keep `opt_share` of the time
-    so that the map is still optimised.
+    take the time integration leaves (they resume as soon as fewer frames wait), and those integrations owe none.
+    When integration cannot keep up even alone, the backlog fills, frames are dropped anyway, and steps keep a
+    share of the time so that the map is still optimised.
     """
 
     def __init__(self, opt_share: float, catch_up: int = 3, backlog: int = 30) -> None:

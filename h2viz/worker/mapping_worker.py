@@ -87,9 +87,7 @@ class MappingWorker(CommandServing):
         check_anytime(cfg.anytime)
         self._resume_after, earlier = resumed or (-1, [])
         self._feed = self._open_feed(self._resume_after)
-        self._schedule = AnytimeSchedule(
-            cfg.anytime.opt_share, cfg.anytime.catch_up_frames, cfg.anytime.backlog_frames
-        )
+        self._schedule = AnytimeSchedule(cfg.anytime.opt_share, cfg.anytime.catch_up_frames, cfg.anytime.backlog_frames)
         self._plateau = plateau_from(cfg.anytime)
         self._phase = ""  # real-time mode: a Phase value ("" in every-frame mode)
         self._opt_steps = self._newest_steps = 0  # real-time steps in all, and on the newest frame

@@ -16,7 +16,7 @@ from h2viz.mapping.kernels.jit import njit
 from h2viz.mapping.kernels.voxel_walk_numba import build_table, lookup
 from h2viz.mapping.meshing.observed import SUB
 
-__all__ = ["build_table", "contains_kernel", "mark_kernel"]  # build_table: the voxel hash table contains_kernel looks voxels up in
+__all__ = ["build_table", "contains_kernel", "mark_kernel"]  # build_table: the voxel hash table the kernels look up
 _SLOTS = 1024  # voxels whose neighbours are remembered (a power of two; a chunk has 512)
 
 
@@ -78,7 +78,9 @@ def contains_kernel(
 
 
 @njit
-def mark_kernel(points: np.ndarray, cell_m: float, table_keys: np.ndarray, table_ids: np.ndarray, words: np.ndarray) -> None:
+def mark_kernel(
+    points: np.ndarray, cell_m: float, table_keys: np.ndarray, table_ids: np.ndarray, words: np.ndarray
+) -> None:
     """words (V,8) uint64 |= the bits of the cells that points (N,3) fall in, where their voxel is in the table
     (`ObservedCells.add`'s NumPy code is the reference). Neighbouring points share a voxel: its lookup is reused."""
     last_x, last_y, last_z, last_v = np.iinfo(np.int64).min, 0, 0, -1

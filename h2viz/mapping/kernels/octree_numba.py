@@ -32,7 +32,9 @@ def cell_stats(points: np.ndarray, voxel_size_m: float, max_bins: int) -> tuple[
     rank = np.zeros(n_bins, np.int64)  # counts first, then rank + 1 of each occupied bin
     linear = np.empty(n, np.int64)
     for i in range(n):
-        cx, cy, cz = int(np.floor(points[i, 0] / vs)), int(np.floor(points[i, 1] / vs)), int(np.floor(points[i, 2] / vs))
+        cx = int(np.floor(points[i, 0] / vs))
+        cy = int(np.floor(points[i, 1] / vs))
+        cz = int(np.floor(points[i, 2] / vs))
         b = ((cx - lo[0]) * d1 + cy - lo[1]) * d2 + cz - lo[2]
         linear[i] = b
         rank[b] += 1
