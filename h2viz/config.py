@@ -455,8 +455,8 @@ class ViewerConfig:
     """Port of the dashboard."""
     mesh_update_hz: float = 4.0
     """Largest rate of mesh updates sent to browsers (and, in real-time mode while frames arrive, of mesh jobs:
-    at 2 Hz a mesh change reached the browser 0.6 s after its frame (median, p90 1.1 s), at 4 Hz 0.43 s (p90
-    0.7 s), with as many frames integrated)."""
+    at 2 Hz a mesh change reached the browser 0.61 s after its frame (median, p90 1.09 s), at 4 Hz 0.47 s (p90
+    0.76 s), with as many frames integrated; docs/anytime.md)."""
     render_width: int = 640
     """Width of refined novel-view renders (moving renders use a quarter)."""
     live_mesh_resolution: int = 4

@@ -100,9 +100,16 @@ class StoredView:
         return StoredView(int(rec["index"]), T, K, rgb, half, depth)
 
 
-def view_distance(T_a: np.ndarray, T_b: np.ndarray) -> float:
-    """Ranking distance of two camera poses (4,4): centre distance plus ROTATION_M x (1 - cos) of their axes."""
-    return float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) + ROTATION_M * (1.0 - T_a[:3, 2] @ T_b[:3, 2]))
+def view_distances(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
+    """Ranking distances (...) of camera poses T_a and T_b (...,4,4), broadcast against each other: centre
+    distance plus ROTATION_M x (1 - cos) of their viewing axes."""
+    centres = np.linalg.norm(T_a[..., :3, 3] - T_b[..., :3, 3], axis=-1)
+    return centres + ROTATION_M * (1.0 - np.sum(T_a[..., :3, 2] * T_b[..., :3, 2], axis=-1))
+
+
+def _poses(views: tuple[StoredView, ...] | list[StoredView]) -> np.ndarray:
+    """The views' T_world_camera (n,4,4)."""
+    return np.stack([v.T_world_camera for v in views])
 
 
 def _sample(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -130,7 +137,6 @@ class ColorViews:
         self.budget_bytes = int(budget_mb * 2**20)
         self.field_weight = float(field_weight)
         self.views: tuple[StoredView, ...] = ()  # replaced, never changed in place: renders may read it meanwhile
-        self._poses = np.zeros((0, 4, 4))  # (n,4,4) the views' T_world_camera, for `add`'s spacing test
 
     @property
     def enabled(self) -> bool:
@@ -146,11 +152,8 @@ class ColorViews:
         if not self.enabled:
             return
         T = np.asarray(frame.T_world_camera, np.float64)
-        if self.views:  # ranking distances to every stored view at once
-            poses = self._poses  # (n,4,4)
-            d = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1) + ROTATION_M * (1.0 - poses[:, :3, 2] @ T[:3, 2])
-            if float(d.min()) < MIN_SPACING:
-                return
+        if self.views and float(view_distances(_poses(self.views), T).min()) < MIN_SPACING:
+            return
         self.replace((*self.views, StoredView.of(frame.index, T, frame.K, frame.rgb, frame.depth_m)))
 
     def replace(self, views: tuple[StoredView, ...]) -> None:
@@ -158,15 +161,13 @@ class ColorViews:
         views = list(views)
         while self.budget_bytes and len(views) > 1 and sum(v.nbytes for v in views) > self.budget_bytes:
             views.pop(self._most_redundant(views))
-        self._poses = np.stack([v.T_world_camera for v in views]) if views else np.zeros((0, 4, 4))  # (n,4,4)
         self.views = tuple(views)
 
     @staticmethod
     def _most_redundant(views: list[StoredView]) -> int:
         """Position of the view nearest to another one (the older of the pair)."""
-        centres = np.stack([v.T_world_camera[:3, 3] for v in views])  # (n,3)
-        axes = np.stack([v.T_world_camera[:3, 2] for v in views])  # (n,3)
-        d = np.linalg.norm(centres[:, None] - centres[None], axis=2) + ROTATION_M * (1.0 - axes @ axes.T)  # (n,n)
+        poses = _poses(views)  # (n,4,4)
+        d = view_distances(poses[:, None], poses[None])  # (n,n)
         np.fill_diagonal(d, np.inf)
         a, b = np.unravel_index(int(np.argmin(d)), d.shape)
         return int(min(a, b))
@@ -176,7 +177,7 @@ class ColorViews:
         views = self.views
         if not views:
             return []
-        d = [view_distance(T_world_camera, v.T_world_camera) for v in views]
+        d = view_distances(_poses(views), np.asarray(T_world_camera, np.float64))  # (n,)
         return [views[i] for i in np.argsort(d, kind="stable")[: self.n_blend]]
 
     def blend(self, points: np.ndarray, field_rgb: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray) -> np.ndarray:

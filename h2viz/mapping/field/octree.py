@@ -16,10 +16,7 @@ import torch
 OFFSET = 1 << 20
 CORNER_OFFSETS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=np.int64)  # (8,3)
 FACE_DIRS = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64)
-
-
-FACE_STEPS = ((-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1))
-"""Leaf-coordinate steps to a voxel's six face neighbours, in the order of `VoxelOctree.face_neighbours`."""
+"""Leaf-coordinate steps to a voxel's six face neighbours: -x, +x, -y, +y, -z, +z."""
 
 
 def encode(coords: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
@@ -214,8 +211,7 @@ class VoxelOctree:
     def face_neighbours(self, voxels: np.ndarray) -> np.ndarray:
         """Ids (n,6) of the voxels across the -x, +x, -y, +y, -z, +z faces of voxels (n,), -1 where none."""
         coords = self.voxel_coords()[np.asarray(voxels, np.int64)]  # (n,3)
-        steps = np.array(FACE_STEPS, dtype=np.int64)  # (6,3)
-        return self.voxels.lookup(encode(coords[:, None, :] + steps[None]))  # (n,6)
+        return self.voxels.lookup(encode(coords[:, None, :] + FACE_DIRS[None]))  # (n,6)
 
     def lookup_points(self, points: torch.Tensor) -> torch.Tensor:
         """Voxel ids (N,) of points (N,3) in metres, -1 outside allocated voxels."""
