@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from h2viz.mapping.field.octree import VoxelOctree
+from h2viz.mapping.field.row_storage import RowStorage
 
 if TYPE_CHECKING:
     from h2viz.mapping.backend import Backend
@@ -49,7 +50,7 @@ class ColorPrior:
         self.sub = int(sub)
         self.n = self.sub + 1
         self.sums = torch.zeros(0, self.n**3, 4, device=device)  # (V, P, 4), a view of the first V of _storage
-        self._storage: torch.Tensor | None = None
+        self._storage = RowStorage()  # the storage behind it, zeroed ahead of use
         self.backend = backend
 
     def _kernels(self, points: torch.Tensor, octree: VoxelOctree) -> tuple[object, tuple] | None:
@@ -102,23 +103,18 @@ class ColorPrior:
                 f"the checkpoint's colour prior lattices have shape {tuple(sums.shape)}, this configuration's "
                 f"(V, {self.n**3}, 4) ({self.sub} cells a voxel edge){hint}"
             )
-        self.sums, self._storage = sums.to(self.sums.device, torch.float32), None
+        self.sums = sums.to(self.sums.device, torch.float32)
+        self._storage.release()
 
     def to(self, device: torch.device) -> None:
         """Keep the lattices on `device` (the field's)."""
         if self.sums.device != device:
-            self.sums, self._storage = self.sums.to(device), None
+            self.sums = self.sums.to(device)
+            self._storage.release()
 
     def grow(self, n_voxels: int) -> None:
-        """Give voxels allocated since the last call empty lattices (storage grows by half at a time, so that a
-        frame that adds a few voxels does not copy every lattice)."""
-        if n_voxels <= self.sums.shape[0]:
-            return
-        if self._storage is None or n_voxels > self._storage.shape[0]:
-            storage = self.sums.new_zeros(max(n_voxels, self.sums.shape[0] * 3 // 2, 256), self.n**3, 4)
-            storage[: self.sums.shape[0]] = self.sums
-            self._storage = storage
-        self.sums = self._storage[:n_voxels]
+        """Give voxels allocated since the last call empty lattices (see `row_storage`: no stall, no full copy)."""
+        self.sums = self._storage.grow(self.sums, n_voxels)
 
     def _lattice(
         self, points: torch.Tensor, voxel: torch.Tensor, voxel_origin: torch.Tensor

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from h2viz.geometry import invert_se3
+from h2viz.mapping.field.row_storage import RowStorage
 
 if TYPE_CHECKING:
     from h2viz.mapping.backend import Backend
@@ -41,7 +42,7 @@ class FinePrior:
         self.truncation_m = float(truncation_m)
         self.n = SUB + 1
         self.state = torch.zeros(0, self.n**3, 2)  # (V, P, 2), a view of the first V of _storage
-        self._storage: torch.Tensor | None = None
+        self._storage = RowStorage()  # the storage behind it, zeroed ahead of use
         self.backend = backend
 
     def _kernels(self) -> object | None:
@@ -51,18 +52,13 @@ class FinePrior:
 
     # ------------------------------------------------------------------------------------------- storage
     def grow(self, n_voxels: int) -> None:
-        """Give voxels allocated since the last call empty lattices (storage grows by half at a time)."""
-        if n_voxels <= self.state.shape[0]:
-            return
-        if self._storage is None or n_voxels > self._storage.shape[0]:
-            storage = self.state.new_zeros(max(n_voxels, self.state.shape[0] * 3 // 2, 256), self.n**3, 2)
-            storage[: self.state.shape[0]] = self.state
-            self._storage = storage
-        self.state = self._storage[:n_voxels]
+        """Give voxels allocated since the last call empty lattices (see `row_storage`: no stall, no full copy)."""
+        self.state = self._storage.grow(self.state, n_voxels)
 
     def to(self, device: torch.device) -> None:
         if self.state.device != device:
-            self.state, self._storage = self.state.to(device), None
+            self.state = self.state.to(device)
+            self._storage.release()
 
     def frozen(self) -> FinePrior:
         """A copy of the lattices as they are now (for a frozen field: the live map keeps fusing into its own)."""
@@ -74,7 +70,8 @@ class FinePrior:
         """Take saved lattices (V, (SUB+1)^3, 2) (a checkpoint's)."""
         if state.shape[1:] != (self.n**3, 2):
             raise ValueError(f"fine SDF prior lattices of shape {tuple(state.shape)}; expected (V, {self.n**3}, 2)")
-        self.state, self._storage = state.to(self.state.device, torch.float32), None
+        self.state = state.to(self.state.device, torch.float32)
+        self._storage.release()
 
     @torch.no_grad()
     def share_faces(self, new_voxels: np.ndarray, neighbours: np.ndarray) -> None:
