@@ -153,6 +153,34 @@ def test_while_a_realtime_stream_arrives_mesh_jobs_come_at_the_update_rate(make_
     assert worker.slot.get()[1].dropped == 0
 
 
+def test_while_a_realtime_stream_arrives_metrics_are_refreshed_off_the_mapping_thread(make_worker: Factory) -> None:
+    """Ground-truth metrics are due every metrics_every frames; the mesh thread computes them with its next publish
+    (the mapping thread a 30 Hz stream keeps busy never does), and the snapshots carry them while frames arrive."""
+    source, mapper = RoomAt15Hz(n=45), FakeMapper()
+    mapper.add_delay_s, mapper.step_delay_s = 0.005, 0.004
+    threads: set[str] = set()
+    worker = make_worker(source, mapper, cfg=anytime_cfg(), realtime=True, mesh_update_hz=4.0, metrics_every=5)
+    refresh = worker._refresh_metrics
+
+    def recorded(voxel_coords: object = None) -> None:
+        threads.add(threading.current_thread().name)
+        refresh(voxel_coords)  # type: ignore[arg-type]
+
+    worker._refresh_metrics = recorded  # type: ignore[method-assign]
+    seen: list[float] = []  # comp ratios of snapshots published while the stream arrived
+    deadline = time.monotonic() + 20
+    snap = None
+    while not (snap is not None and snap.finished) and time.monotonic() < deadline:
+        snap = worker.slot.get()[1]
+        if snap is not None and snap.metrics and 0 < snap.frames_done < 45:
+            seen.append(snap.metrics["comp_ratio"])
+        time.sleep(0.02)
+    assert worker.wait_finished(20)
+    assert seen and all(0 < c <= 100 for c in seen)
+    assert "h2viz-meshing" in threads  # refreshed by the mesh thread while streaming ...
+    assert worker.slot.get()[1].metrics["comp_ratio"] > 0  # ... and once more at the end
+
+
 def _live_frames(events: list[tuple[str, int]]) -> Iterator[tuple[tuple[str, int], int]]:
     """Each event with the newest frame integrated before it."""
     newest = -1

@@ -52,6 +52,11 @@ def point_metrics(rec_pts: np.ndarray, gt_pts: np.ndarray, threshold_m: float = 
         )
     d_rec, _ = cKDTree(gt_pts).query(rec_pts, workers=-1)  # (N,) reconstruction -> ground truth
     d_gt, _ = cKDTree(rec_pts).query(gt_pts, workers=-1)  # (M,) ground truth -> reconstruction
+    return distance_metrics(d_rec, d_gt, threshold_m)
+
+
+def distance_metrics(d_rec: np.ndarray, d_gt: np.ndarray, threshold_m: float = 0.05) -> dict[str, float]:
+    """`point_metrics` from the nearest distances reconstruction -> ground truth (N,) and back (M,), metres."""
     precision = 100.0 * float(np.mean(d_rec < threshold_m))
     recall = 100.0 * float(np.mean(d_gt < threshold_m))
     fscore = 2.0 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
@@ -62,8 +67,8 @@ def point_metrics(rec_pts: np.ndarray, gt_pts: np.ndarray, threshold_m: float = 
         "precision": precision,
         "recall": recall,
         "fscore": fscore,
-        "n_rec_points": float(len(rec_pts)),
-        "n_gt_points": float(len(gt_pts)),
+        "n_rec_points": float(len(d_rec)),
+        "n_gt_points": float(len(d_gt)),
     }
 
 

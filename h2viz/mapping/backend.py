@@ -72,6 +72,14 @@ class Backend:
             return None
         return k
 
+    def serial_thread(self) -> None:
+        """Make the calling thread (a background one: meshing) run this backend's kernels on one thread, leaving
+        the other cores to the mapping thread's parallel kernels (no-op without compiled kernels)."""
+        if self.array_kernels is not None:
+            from h2viz.mapping.kernels.jit import serial_kernels
+
+            serial_kernels()
+
 
 REFERENCE = Backend("torch", torch.device("cpu"))
 """The pure-torch CPU backend: what a stage built without a backend runs (the reference of every kernel)."""

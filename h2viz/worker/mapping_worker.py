@@ -125,7 +125,12 @@ class MappingWorker(CommandServing):
         self._publish_lock = threading.Lock()
         self._chunks_out: dict = {}  # the chunks snapshots carry (changed only by the mesh thread's publish)
         self._last_snap: MapSnapshot | None = None
-        self.meshing = MeshThread(self._publish_mesh, lambda: self.settings.mesh_update_hz)
+        self._live_metrics: Any = None  # a LiveMeshMetrics against the ground truth, made at the first refresh
+        self._metrics_lock = threading.Lock()  # the mapping and meshing threads both refresh metrics
+        self._metrics_due = False  # the meshing thread refreshes the metrics at its next publish
+        backend = getattr(mapper, "backend", None)  # the mesh thread's kernels run on one core beside mapping's
+        serial = None if backend is None else backend.serial_thread
+        self.meshing = MeshThread(self._publish_mesh, lambda: self.settings.mesh_update_hz, serial)
         self._recorder: Any = None  # a BackgroundRecorder while the run is recorded
         self._gt: Any = None
         self._fatal: BaseException | None = None
@@ -362,7 +367,7 @@ class MappingWorker(CommandServing):
         self._current = frame
         every = self.settings.metrics_every
         if self.live and self._gt is not None and every > 0 and self._n_mapped % every == 0:
-            self._refresh_metrics()
+            self._metrics_due = True  # the meshing thread refreshes them with its next publish
         if self.live and self._mesh_due() and (self._mesh_dirty or not self.meshing.busy):
             self._submit_mesh(REFRESH_S)  # not while a job runs: freezing the field costs ~15 ms a frame
         self._resolve_steps(stats)
@@ -436,7 +441,7 @@ class MappingWorker(CommandServing):
         self._metrics = {}
         self._failures = self._consecutive = self._unmeshed = self._newest_steps = 0
         self._refine_left = self._refined = 0
-        self._mesh_dirty = False
+        self._mesh_dirty = self._metrics_due = False
         self._phase = ""
         self._plateau.reset()
         self._sharpen_s = 0.0
@@ -575,18 +580,20 @@ class MappingWorker(CommandServing):
         self._submit_mesh(0.0, whole=True)
         self.meshing.wait_idle()
 
-    def _refresh_metrics(self) -> None:
-        """Ground-truth metrics of the mesh as it is now (while mapping: the live chunks, no re-meshing)."""
-        from h2viz.eval.metrics import mesh_metrics, voxel_mask_fn
-        from h2viz.mapping.meshing.mesher import merge_chunks
+    def _refresh_metrics(self, voxel_coords: np.ndarray | None = None) -> None:
+        """Ground-truth metrics of the mesh as it is now (the live chunks, no re-meshing), the ground truth culled
+        to `voxel_coords` (V,3) (default: the mapper's voxels; the meshing thread passes the last snapshot's)."""
+        from h2viz.eval.live_metrics import LiveMeshMetrics
 
-        try:
-            mask = voxel_mask_fn(self.mapper.voxel_coords(), self.mapper.voxel_size_m)
-            n, thr = self.settings.metrics_points, self.cfg.eval.threshold_m
-            mesh = merge_chunks(self.mapper.mesh_chunks())
-            self._metrics = mesh_metrics(mesh, self._gt, n, thr, gt_mask_fn=mask)
-        except Exception as e:  # metrics are informative; mapping goes on
-            log.warning("ground-truth metrics failed: %s", e)
+        with self._metrics_lock:
+            try:
+                if self._live_metrics is None:
+                    n, thr = self.settings.metrics_points, self.cfg.eval.threshold_m
+                    self._live_metrics = LiveMeshMetrics(self._gt, n, thr)
+                coords = self.mapper.voxel_coords() if voxel_coords is None else voxel_coords
+                self._metrics = self._live_metrics(self.mapper.mesh_chunks(), coords, self.mapper.voxel_size_m)
+            except Exception as e:  # metrics are informative; mapping goes on
+                log.warning("ground-truth metrics failed: %s", e)
 
     def _publish(self) -> None:
         m = self.mapper
@@ -620,13 +627,20 @@ class MappingWorker(CommandServing):
                 self._recorder.offer(snap)
 
     def _publish_mesh(self) -> None:
-        """(mesh thread) The last snapshot again with the mapper's current chunks."""
+        """(mesh thread) The last snapshot again with the mapper's current chunks (and fresh ground-truth metrics
+        when they are due: off the mapping thread, which a 30 Hz stream keeps busy)."""
+        last = self._last_snap
+        if self._metrics_due and self._gt is not None and last is not None:
+            self._metrics_due = False
+            self._refresh_metrics(last.voxel_coords)
         with self._publish_lock:
             self._chunks_out = self.mapper.mesh_chunks()
             if self._last_snap is None:
                 return
             self._version += 1
-            self._last_snap = replace(self._last_snap, version=self._version, chunks=self._chunks_out)
+            self._last_snap = replace(
+                self._last_snap, version=self._version, chunks=self._chunks_out, metrics=dict(self._metrics)
+            )
             self.slot.put(self._last_snap)
             if self._recorder is not None:
                 self._recorder.offer(self._last_snap)

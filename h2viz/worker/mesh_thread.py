@@ -33,8 +33,15 @@ class MeshThread:
     `h2viz.mapping.meshing.job.MeshJob`) one at a time; `publish()` is called after passes, no more often than
     `rate_hz()` (<= 0: no limit)."""
 
-    def __init__(self, publish: Callable[[], None], rate_hz: Callable[[], float]) -> None:
+    def __init__(
+        self,
+        publish: Callable[[], None],
+        rate_hz: Callable[[], float],
+        background: Callable[[], None] | None = None,
+    ) -> None:
+        """`background()` runs first on the thread (e.g. `Backend.serial_thread`: kernels on one core)."""
         self._publish, self._rate_hz = publish, rate_hz
+        self._background = background
         self._cond = threading.Condition()
         self._pending: tuple[Any, float] | None = None  # (job, submitted at)
         self._running = False
@@ -95,6 +102,8 @@ class MeshThread:
 
     # -- the thread ----------------------------------------------------------------------------
     def _run(self) -> None:
+        if self._background is not None:
+            self._background()
         while True:
             with self._cond:
                 while self._pending is None and not self._stopping:

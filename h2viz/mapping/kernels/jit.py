@@ -16,6 +16,8 @@ import numba
 import torch
 
 _PARALLEL = threading.Lock()
+_LOCAL = threading.local()  # .serial: this thread runs every kernel on one thread (see `serial_kernels`)
+_CONCURRENT_LAYERS = ("omp", "tbb")  # numba threading layers that may be entered from several threads at once
 
 
 def njit(
@@ -43,12 +45,37 @@ def njit(
     return wrap(fn) if fn is not None else wrap
 
 
+def serial_kernels() -> None:
+    """Make the calling thread (a background one, e.g. meshing) run every kernel on one thread, so that it takes
+    at most one core from the mapping thread's kernels. With a threading layer that may be entered from several
+    threads at once (OpenMP, TBB) its kernels no longer wait for `parallel_region`'s lock either."""
+    _LOCAL.serial = True
+    numba.set_num_threads(1)  # thread-local in numba: kernels entered without `parallel_region` follow it too
+
+
+def _concurrent_layer() -> bool:
+    """numba's threading layer (chosen at the first parallel kernel) may be entered from several threads."""
+    try:
+        return numba.threading_layer() in _CONCURRENT_LAYERS
+    except ValueError:  # no parallel kernel has run yet: the layer is not chosen
+        return False
+
+
 @contextlib.contextmanager
 def parallel_region() -> Iterator[int]:
     """Hold the package's one parallel-kernel lock, with numba's thread count matched to torch's (capped at
     numba's pool size); yields that count. numba's workqueue threading layer (used when neither OpenMP nor TBB
     is available) must not be entered from two threads at once, and the mapping and meshing threads both run
-    parallel kernels."""
+    parallel kernels. A thread under `serial_kernels` yields 1, without the lock when the layer allows it."""
+    if getattr(_LOCAL, "serial", False):
+        if _concurrent_layer():
+            numba.set_num_threads(1)
+            yield 1
+            return
+        with _PARALLEL:
+            numba.set_num_threads(1)
+            yield 1
+        return
     with _PARALLEL:
         n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
         numba.set_num_threads(n)
