@@ -68,11 +68,7 @@ def parallel_region() -> Iterator[int]:
     is available) must not be entered from two threads at once, and the mapping and meshing threads both run
     parallel kernels. A thread under `serial_kernels` yields 1, without the lock when the layer allows it."""
     if getattr(_LOCAL, "serial", False):
-        if _concurrent_layer():
-            numba.set_num_threads(1)
-            yield 1
-            return
-        with _PARALLEL:
+        with contextlib.nullcontext() if _concurrent_layer() else _PARALLEL:
             numba.set_num_threads(1)
             yield 1
         return
