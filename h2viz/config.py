@@ -476,7 +476,8 @@ class ViewerConfig:
 class AutosaveConfig:
     every_frames: int = 50
     """Write the run folder's autosave.pt (h2viz map and the dashboard) after every this many mapped frames
-    (0 = not by frames). A killed run loses at most this many frames: `h2viz map --resume RUN_FOLDER`."""
+    (0 = not by frames; real-time runs count time alone while their stream plays). A killed run loses at most this
+    many frames: `h2viz map --resume RUN_FOLDER`."""
     every_s: float = 120.0
     """... or when this many seconds passed since the last autosave, whichever comes first (0 = not by time)."""
 

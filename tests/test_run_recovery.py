@@ -7,6 +7,8 @@ from __future__ import annotations
 import errno
 import json
 import os
+import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -53,6 +55,40 @@ def test_autosave_is_due_every_n_frames_or_m_seconds() -> None:
     now[0] = 10.0
     assert saver.due(9) and not saver.due(8)  # time alone, but only after a new frame
     assert not Autosaver(Path("."), AutosaveConfig(0, 0.0)).enabled
+
+
+def test_while_a_stream_plays_autosaves_come_by_time_and_are_written_in_the_background(tmp_path: Path) -> None:
+    now, release, written, threads = [0.0], threading.Event(), [], []
+
+    def prepare(mapper: object, extra: dict) -> Callable[[Path], None]:
+        taken = dict(extra)  # the state is taken on the calling thread
+
+        def write(path: Path) -> None:
+            threads.append(threading.current_thread())
+            assert release.wait(5.0)
+            if taken.get("fail"):
+                raise OSError(28, "No space left on device")
+            written.append(taken["frames"])
+
+        return write
+
+    cfg = AutosaveConfig(every_frames=2, every_s=10.0)
+    saver = Autosaver(tmp_path, cfg, clock=lambda: now[0], prepare=prepare)
+    assert not saver.due(5, streaming=True) and saver.due(5)  # frames alone do not make it due while streaming
+    now[0] = 10.0
+    assert saver.maybe_save(None, 5, lambda: {"frames": 5}, streaming=True) is None  # returns at once...
+    assert saver.writing and written == []  # ...while its write waits on another thread
+    now[0] = 30.0
+    assert saver.maybe_save(None, 9, lambda: {"frames": 9}, streaming=True) is None and saver.writing
+    release.set()
+    assert saver.wait() is None and written == [5] and threads[0] is not threading.current_thread()  # one at a time
+    assert saver.maybe_save(None, 9, lambda: {"frames": 9, "fail": True}, streaming=True) is None
+    saver._thread.join()  # type: ignore[union-attr]
+    failed = saver.maybe_save(None, 9, lambda: {"frames": 9}, streaming=True)  # the failure is reported next time
+    assert failed is not None and "No space left on device" in failed and "previous autosave is kept" in failed
+    now[0] = 40.0
+    assert saver.maybe_save(None, 10, lambda: {"frames": 10}, streaming=True) is None  # and saving goes on
+    assert saver.wait() is None and written == [5, 10] and saver.saves == 2
 
 
 def test_a_run_folder_resumes_from_its_newest_checkpoint(tmp_path: Path) -> None:
@@ -149,13 +185,15 @@ def test_a_realtime_run_autosaves_and_resuming_it_goes_on_after_its_last_integra
     monkeypatch.setattr(checkpoint_format, "write", noting)
     out = tmp_path / "run"
     realtime = ["--realtime", "--set", "anytime.sharpen_max_s=0"]
-    assert main([*map_args(out, 6), *realtime]) == 0
+    every_frame = ["--set", "autosave.every_s=1e-6"]  # due after every frame: by time (frames do not count)
+    assert main([*map_args(out, 6), *realtime, *every_frame]) == 0
     mapped = [f["index"] for f in stats_of(out)["frames"]]
     n = len(mapped)
     assert n == stats_of(out)["realtime"]["integrated"] >= 4  # a frame the reader was late for may be passed over
     autosaves = [(frames, last) for name, frames, last in writes if name == AUTOSAVE_NAME]
-    assert [frames for frames, _ in autosaves] == [*range(2, n + 1, 2), *([n] if n % 2 else [])]  # and at the end
-    assert autosaves[-1] == (n, mapped[-1])
+    assert autosaves[0][0] == 1 and autosaves[-1] == (n, mapped[-1])  # from the first frame, and at the end
+    assert all(a[0] < b[0] for a, b in zip(autosaves, autosaves[1:], strict=False))  # one at a time
+    assert all(last == mapped[frames - 1] for frames, last in autosaves)  # each of one moment
     mapper, extra = load_checkpoint(out / AUTOSAVE_NAME)
     assert mapper.frames_done == n and [s["index"] for s in extra["stats"]] == mapped
 

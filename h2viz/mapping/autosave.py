@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -20,6 +21,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("h2viz.autosave")
 Writer = Callable[[Any, Path, dict[str, Any]], Any]
+Preparer = Callable[[Any, dict[str, Any]], Callable[[Path], Any]]
 AUTOSAVE_NAME = "autosave.pt"
 
 
@@ -117,7 +119,12 @@ def earlier_run(folder: str | Path) -> tuple[ResumeOffer | None, str | None]:
 class Autosaver:
     """Writes the run folder's autosave.pt when `autosave.every_frames` frames or `autosave.every_s` seconds have
     passed since the last one. A failed write (disk full, folder gone) is logged and reported, never raised: the
-    map stays in memory and the previous autosave stays valid."""
+    map stays in memory and the previous autosave stays valid.
+
+    While a live stream plays (`streaming`), autosaves come by time alone (every_frames counts frames at the pace
+    of every-frame mapping: at 30 Hz, 50 frames pass in under 2 s, less than a write takes) and are written in the
+    background: the mapping thread only takes the state (`prepare_checkpoint`), a thread writes it while frames
+    go on being integrated. One write runs at a time; any other save waits for it first."""
 
     def __init__(
         self,
@@ -126,19 +133,28 @@ class Autosaver:
         frames_done: int = 0,
         clock: Callable[[], float] = time.monotonic,
         writer: Writer | None = None,
+        prepare: Preparer | None = None,
     ) -> None:
         """`frames_done`: the frames mapped before this run (a resumed run's), where counting starts; `writer`
-        (mapper, path, extra) writes the checkpoint (default: save_checkpoint)."""
+        (mapper, path, extra) writes the checkpoint (default: save_checkpoint); `prepare` (mapper, extra) takes
+        the state and returns what writes it to a path, on another thread (default: prepare_checkpoint)."""
         self.path = Path(folder) / AUTOSAVE_NAME
-        self.cfg, self._clock, self._writer = cfg, clock, writer
+        self.cfg, self._clock, self._writer, self._prepare = cfg, clock, writer, prepare
         self._last_frames = frames_done
         self._last_t = clock()
         self.saves = 0
         self.last_error: str | None = None
+        self._thread: threading.Thread | None = None  # a background write in progress
+        self._unreported: str | None = None  # a background write's failure, until maybe_save reports it
 
     @property
     def enabled(self) -> bool:
         return self.cfg.every_frames > 0 or self.cfg.every_s > 0
+
+    @property
+    def writing(self) -> bool:
+        """A background write is in progress."""
+        return self._thread is not None and self._thread.is_alive()
 
     def restart(self, frames_done: int) -> None:
         """Count from `frames_done` mapped frames and from now (the worker took over another run's map)."""
@@ -148,29 +164,65 @@ class Autosaver:
         """Frames were mapped since the last autosave (or since the start): saving now would keep them."""
         return self.enabled and frames_done > self._last_frames
 
-    def due(self, frames_done: int) -> bool:
-        """Whether an autosave is due after `frames_done` mapped frames."""
-        by_frames = self.cfg.every_frames > 0 and frames_done - self._last_frames >= self.cfg.every_frames
+    def due(self, frames_done: int, streaming: bool = False) -> bool:
+        """Whether an autosave is due after `frames_done` mapped frames (by time alone while `streaming`)."""
+        by_frames = (
+            not streaming and self.cfg.every_frames > 0 and frames_done - self._last_frames >= self.cfg.every_frames
+        )
         by_time = self.cfg.every_s > 0 and self._clock() - self._last_t >= self.cfg.every_s
         return frames_done > self._last_frames and (by_frames or by_time)
 
-    def save(self, mapper: Mapper, frames_done: int, extra: dict[str, Any]) -> str | None:
-        """Write the autosave now; None, or the message of a failed write."""
-        from h2viz.mapping.checkpoint import save_checkpoint
+    def save(self, mapper: Mapper, frames_done: int, extra: dict[str, Any], background: bool = False) -> str | None:
+        """Write the autosave now (`background`: take the state now, write it on a thread); None, or the message of
+        a failed write (a background one's comes from a later `maybe_save`). Waits for a write in progress."""
+        from h2viz.mapping.checkpoint import prepare_checkpoint, save_checkpoint
 
+        self.wait()
         self._last_frames, self._last_t = frames_done, self._clock()
         try:
-            (self._writer or save_checkpoint)(mapper, self.path, extra)
+            if not background:
+                (self._writer or save_checkpoint)(mapper, self.path, extra)
+                return self._done(None)
+            write = (self._prepare or prepare_checkpoint)(mapper, extra)
         except (CheckpointError, OSError) as e:
-            self.last_error = f"autosave failed: {e}; mapping goes on, the previous autosave is kept"
-            log.error("%s", self.last_error)
-            return self.last_error
-        self.saves += 1
-        self.last_error = None
+            return self._done(e)
+        self._thread = threading.Thread(target=self._write, args=(write,), name="h2viz-autosave", daemon=True)
+        self._thread.start()
         return None
 
-    def maybe_save(self, mapper: Mapper, frames_done: int, extra: Callable[[], dict[str, Any]]) -> str | None:
-        """`save` when one is due (`extra` is called only then); None, or the message of a failed write."""
-        if not self.enabled or not self.due(frames_done):
+    def _write(self, write: Callable[[Path], Any]) -> None:
+        """(autosave thread) Write a prepared state; a failure waits for `maybe_save` to report it."""
+        try:
+            write(self.path)
+            self._done(None)
+        except Exception as e:  # noqa: BLE001 - the thread must not die silently: report whatever failed
+            self._unreported = self._done(e)
+
+    def _done(self, error: Exception | None) -> str | None:
+        if error is None:
+            self.saves += 1
+            self.last_error = None
             return None
-        return self.save(mapper, frames_done, extra())
+        self.last_error = f"autosave failed: {error}; mapping goes on, the previous autosave is kept"
+        log.error("%s", self.last_error)
+        return self.last_error
+
+    def wait(self) -> str | None:
+        """Wait for a background write in progress; None, or the message of its failure (once)."""
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        failed, self._unreported = self._unreported, None
+        return failed
+
+    def maybe_save(
+        self, mapper: Mapper, frames_done: int, extra: Callable[[], dict[str, Any]], streaming: bool = False
+    ) -> str | None:
+        """`save` when one is due (`extra` is called only then; `streaming`: due by time alone, written in the
+        background, and not while a write is in progress); None, or the message of a failed write (a finished
+        background write's first)."""
+        if not self.writing and self._unreported is not None:
+            return self.wait()
+        if not self.enabled or self.writing or not self.due(frames_done, streaming):
+            return None
+        return self.save(mapper, frames_done, extra(), background=streaming)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +13,7 @@ from h2viz.config import MappingConfig, mapping_from_dict
 from h2viz.errors import CheckpointError, ConfigError
 from h2viz.mapping import checkpoint_format
 from h2viz.mapping.backend import Backend
+from h2viz.mapping.field.color_prior import compact_sums
 from h2viz.mapping.field.color_views import StoredView
 from h2viz.mapping.keyframes.budget import BudgetReport
 from h2viz.mapping.mapper import Mapper
@@ -50,22 +52,32 @@ def _keyframe_from_record(rec: dict[str, Any], backend: Backend) -> FrameRays:
 
 def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = None) -> None:
     """Write the whole mapping state to `path` (a .pt file), atomically; `extra` holds plain data only."""
+    prepare_checkpoint(mapper, extra)(Path(path))
+
+
+def prepare_checkpoint(mapper: Mapper, extra: dict[str, Any] | None = None) -> Callable[[Path], None]:
+    """Take the mapping state as it is now (on the mapping thread) and return what writes it to a path, on any
+    thread: an autosave while a live stream goes on writes in the background. Taking it copies no lattice, keyframe
+    or network: what changes size (octree, corner priors, keyframe lists, lattices) is replaced when it grows, so
+    the references taken stay as they are. The lattices' running sums and the networks' parameters are read when
+    written: a write that overlaps later frames may hold some of their fusion and steps (a resumed run integrates
+    those frames again, adding them to its averages twice); voxels, keyframes and frame counts are those of now."""
+    color = None if mapper.field.color_prior is None else mapper.field.color_prior.sums  # (V,P,4), read later
+    fine = None if mapper.field.fine_prior is None else mapper.field.fine_prior.state  # (V,P,2), read later
+    views = tuple(mapper.color_views.views)  # immutable; JPEG-encoded by the write (once a view)
     state = {
         "format_version": FORMAT_VERSION,
         "config": dataclasses.asdict(mapper.cfg),
         "octree": mapper.octree.state_dict(),
-        "priors_init": mapper.priors.state_dict(),
-        "observed": mapper.observed.state_dict(),
-        "priors": mapper.field.priors.detach().cpu(),
-        "color_prior": None if mapper.field.color_prior is None else mapper.field.color_prior.sums.cpu().clone(),
-        "fine_prior": None if mapper.field.fine_prior is None else mapper.field.fine_prior.state.cpu().clone(),
+        "priors_init": {k: np.array(v) for k, v in mapper.priors.state_dict().items()},  # written in place
+        "observed": {k: np.array(v) for k, v in mapper.observed.state_dict().items()},  # written in place
+        "priors": mapper.field.priors.detach().cpu().clone(),
         "field": {k: v.cpu() for k, v in mapper.field.state_dict().items()},
         "optim": mapper.optim.state_dict(),
         "net_optim": mapper.net_optim.state_dict(),
         "keyframes": mapper.keyframes.state_dict(),
         "keyframe_frames": [_keyframe_record(r) for r in mapper.keyframe_rays],
-        "thumbnails": mapper.thumbnails,
-        "color_views": [view.record() for view in mapper.color_views.views],
+        "thumbnails": list(mapper.thumbnails),
         "keyframe_thinning": list(mapper.keyframe_budget.thinning),
         "keyframe_budget": dataclasses.asdict(mapper.keyframe_budget.report),
         "trajectory": np.asarray(mapper.trajectory).reshape(-1, 4, 4),
@@ -74,7 +86,16 @@ def save_checkpoint(mapper: Mapper, path: Path, extra: dict[str, Any] | None = N
         "rng": mapper.rng.get_state(),
         "extra": extra or {},
     }
-    checkpoint_format.write(state, Path(path))
+
+    def write(path: Path) -> None:
+        lattices = {
+            "color_prior": None if color is None else compact_sums(color),  # ~1 lattice point in 8 holds colour
+            "fine_prior": None if fine is None else fine.cpu().clone(),  # its rows alone, not the storage behind
+            "color_views": [view.record() for view in views],
+        }
+        checkpoint_format.write({**state, **lattices}, Path(path))
+
+    return write
 
 
 def load_checkpoint(path: Path, cfg: MappingConfig | None = None) -> tuple[Mapper, dict[str, Any]]:

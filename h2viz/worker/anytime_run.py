@@ -142,12 +142,12 @@ class AnytimeRun:
         saver = self.autosave
         if saver is None or not self.stats:
             return
-        if not at_end:
-            failed = saver.maybe_save(self.mapper, self.frames_done, self.run_state)
+        if not at_end:  # frames arriving: by time, written in the background
+            failed = saver.maybe_save(self.mapper, self.frames_done, self.run_state, streaming=True)
         elif saver.behind(self.frames_done):
             failed = saver.save(self.mapper, self.frames_done, self.run_state())
         else:
-            failed = None
+            failed = saver.wait()
         if failed is not None and failed not in self.errors:
             self.errors.append(failed)
 

@@ -105,7 +105,13 @@ class MappingWorker(CommandServing):
         self._n_resumed = len(earlier)  # ... of which the run resumed mapped
         self._last_index = self._resume_after
         self._autosave = (
-            Autosaver(autosave_dir, cfg.autosave, self._n_mapped, writer=requests.save_checkpoint)
+            Autosaver(
+                autosave_dir,
+                cfg.autosave,
+                self._n_mapped,
+                writer=requests.save_checkpoint,
+                prepare=requests.prepare_checkpoint,
+            )
             if autosave_dir is not None
             else None
         )
@@ -148,6 +154,8 @@ class MappingWorker(CommandServing):
         if self._thread.is_alive():
             self._thread.join(timeout=timeout_s)
         self.meshing.stop(timeout_s)
+        if self._autosave is not None:  # a background autosave in progress finishes
+            self._autosave.wait()
         self.stop_recording()
         self._fail_pending(H2vizError("the mapping worker stopped before serving this request"))
 
@@ -372,7 +380,7 @@ class MappingWorker(CommandServing):
             self._submit_mesh(REFRESH_S)  # not while a job runs: freezing the field costs ~15 ms a frame
         self._resolve_steps(stats)
         if self._autosave is not None:
-            failed = self._autosave.maybe_save(self.mapper, self._n_mapped, self._autosave_extra)
+            failed = self._autosave.maybe_save(self.mapper, self._n_mapped, self._autosave_extra, streaming=anytime)
             if failed is not None:
                 self._errors.append(failed)
         self._publish()

@@ -4,7 +4,7 @@ interleaved with mapping), mesh export to bytes, checkpoint saving and live sett
 from __future__ import annotations
 
 import time
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from concurrent.futures import Future, InvalidStateError
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -118,6 +118,22 @@ def save_checkpoint(mapper: Mapper, path: str | Path, extra: dict[str, Any] | No
 
         save(mapper, path, extra)
     return str(path)
+
+
+def prepare_checkpoint(mapper: Mapper, extra: dict[str, Any] | None = None) -> Callable[[Path], str]:
+    """`save_checkpoint` in two halves: the mapping state taken now, and what writes it on any thread (see
+    h2viz.mapping.checkpoint.prepare_checkpoint)."""
+    if hasattr(mapper, "save_checkpoint"):  # a mapper that writes itself
+        return lambda path: save_checkpoint(mapper, path, extra)
+    from h2viz.mapping.checkpoint import prepare_checkpoint as prepare
+
+    write = prepare(mapper, extra)
+
+    def written(path: Path) -> str:
+        write(Path(path))
+        return str(path)
+
+    return written
 
 
 MAPPER_SETTINGS = {"mesh_resolution": int, "mesh_observed_only": bool}

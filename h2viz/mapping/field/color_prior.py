@@ -94,8 +94,10 @@ class ColorPrior:
         view.sums = self.sums
         return view
 
-    def load(self, sums: torch.Tensor) -> None:
-        """Take saved lattices (V, (sub+1)^3, 4) (a checkpoint's)."""
+    def load(self, sums: torch.Tensor | dict[str, torch.Tensor]) -> None:
+        """Take saved lattices: (V, (sub+1)^3, 4), or `compact_sums`' form of them (a checkpoint's)."""
+        if isinstance(sums, dict):
+            sums = expand_sums(sums)
         if sums.shape[1:] != (self.n**3, 4):
             saved = round(float(sums.shape[1]) ** (1.0 / 3.0)) - 1 if sums.ndim == 3 and sums.shape[2] == 4 else None
             hint = f"; set mapping.color.color_prior_cells={saved} to load it" if saved is not None else ""
@@ -174,3 +176,30 @@ class ColorPrior:
         """logit of the prior colour (N,3) at world points (N,3): the colour field's output before its residual."""
         rgb, _ = self.colors(octree, voxel_origin, points)
         return torch.logit(rgb.clamp(LOGIT_EPS, 1.0 - LOGIT_EPS))
+
+
+def compact_sums(sums: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The lattices (V, P, 4) as a checkpoint keeps them: the lattice points something was splatted on (a surface
+    crosses a voxel's lattice in a thin sheet: about 1 in 8 at the defaults), as their flat indices (M,) into
+    (V*P) (int32 while they fit) and sums (M,4), with (V, P). Lossless: a point's colour sums are weight * colour,
+    zero where its weight is."""
+    flat = sums.detach().cpu().reshape(-1, 4)  # (V*P,4)
+    rows = torch.nonzero(flat[:, 3] != 0)[:, 0]  # (M,)
+    if flat.shape[0] < 2**31:
+        rows = rows.to(torch.int32)
+    shape = torch.tensor([int(sums.shape[0]), int(sums.shape[1])])
+    return {"shape": shape, "rows": rows, "sums": flat[rows]}
+
+
+def expand_sums(saved: dict[str, torch.Tensor]) -> torch.Tensor:
+    """`compact_sums`' inverse: the lattices (V, P, 4)."""
+    n_voxels, points_per_voxel = (int(x) for x in saved["shape"])
+    rows, values = saved["rows"].long(), saved["sums"].float()
+    if values.shape != (rows.numel(), 4) or (rows.numel() and int(rows.max()) >= n_voxels * points_per_voxel):
+        raise ValueError(
+            f"the checkpoint's colour prior is inconsistent: {values.shape[0]} sums for {rows.numel()} lattice "
+            f"points, of {n_voxels} voxels x {points_per_voxel}"
+        )
+    flat = torch.zeros(n_voxels * points_per_voxel, 4)
+    flat[rows] = values
+    return flat.view(n_voxels, points_per_voxel, 4)

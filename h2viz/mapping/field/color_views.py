@@ -13,6 +13,7 @@ averages out per-frame noise and aliasing that a few views keep.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -73,16 +74,21 @@ class StoredView:
 
     def record(self) -> dict[str, Any]:
         """Plain arrays for a checkpoint: the colour as a JPEG (quality JPEG_QUALITY), depth as float16."""
-        ok, jpeg = cv2.imencode(".jpg", self.rgb[..., ::-1], JPEG_FLAGS)
-        if not ok:
-            raise ValueError(f"could not encode stored view {self.index} as JPEG")
         return {
             "index": self.index,
             "T_world_camera": self.T_world_camera,
             "K": self.K,
-            "jpeg": jpeg.reshape(-1),
+            "jpeg": self._jpeg,
             "depth_half": self.depth_half.astype(np.float16),
         }
+
+    @functools.cached_property
+    def _jpeg(self) -> np.ndarray:
+        """The colour as a JPEG (N,) uint8, encoded once: every autosave writes every stored view."""
+        ok, jpeg = cv2.imencode(".jpg", self.rgb[..., ::-1], JPEG_FLAGS)
+        if not ok:
+            raise ValueError(f"could not encode stored view {self.index} as JPEG")
+        return jpeg.reshape(-1)
 
     @staticmethod
     def from_record(rec: dict[str, Any]) -> StoredView:

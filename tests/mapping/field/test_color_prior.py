@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from h2viz.mapping.field.color_prior import EMPTY, SUB, ColorPrior
+from h2viz.mapping.field.color_prior import EMPTY, SUB, ColorPrior, compact_sums
 from h2viz.mapping.field.octree import VoxelOctree
 from tests.mapping.backends import FAST, REFERENCE
 
@@ -91,3 +91,26 @@ def test_a_checkpoint_of_another_lattice_resolution_names_the_setting() -> None:
     saved.grow(2)
     with pytest.raises(ValueError, match="mapping.color.color_prior_cells=8"):
         ColorPrior(VS, sub=12).load(saved.sums)
+    with pytest.raises(ValueError, match="mapping.color.color_prior_cells=8"):  # the same from its compact form
+        ColorPrior(VS, sub=12).load(compact_sums(saved.sums))
+
+
+def test_a_checkpoint_keeps_only_the_lattice_points_colour_was_splatted_on_and_restores_them_exactly() -> None:
+    prior = ColorPrior(VS, sub=SUB)
+    prior.grow(4)
+    rng = torch.Generator().manual_seed(0)
+    points = torch.rand(50, 3, generator=rng) * VS + torch.tensor([VS, 0.0, 0.0])  # inside voxel 1
+    origins = torch.tensor([[0.0, 0, 0], [VS, 0, 0], [0, VS, 0], [0, 0, VS]])  # (4,3)
+    prior.splat(points, torch.ones(50, dtype=torch.long), origins, torch.rand(50, 3, generator=rng))
+    saved = compact_sums(prior.sums)
+    touched = int((prior.sums[..., 3] != 0).sum())
+    assert saved["rows"].shape == (touched,) and saved["sums"].shape == (touched, 4)
+    assert 0 < touched <= 8 * 50 < prior.sums.shape[0] * prior.sums.shape[1]  # 8 lattice points a splat at most
+    restored = ColorPrior(VS, sub=SUB)
+    restored.load(saved)
+    assert torch.equal(restored.sums, prior.sums)
+    restored.grow(6)  # and it grows on from there
+    assert torch.equal(restored.sums[:4], prior.sums) and not restored.sums[4:].any()
+    bad = dict(saved, rows=saved["rows"][:-1])
+    with pytest.raises(ValueError, match="inconsistent"):
+        ColorPrior(VS, sub=SUB).load(bad)
