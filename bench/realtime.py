@@ -23,7 +23,9 @@ PSNR / depth L1 on each method's own rendered pixels (bench/heldout.py's scoring
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass, field
@@ -42,6 +44,7 @@ from h2viz.errors import H2vizError  # noqa: E402
 from h2viz.eval.mesh_render import MeshRenderer  # noqa: E402
 from h2viz.eval.metrics import mesh_metrics, observed_mask_fn  # noqa: E402
 from h2viz.eval.report import EvalView, Renderer, load_mesh  # noqa: E402
+from h2viz.mapping.autosave import Autosaver  # noqa: E402
 from h2viz.mapping.mapper import Mapper  # noqa: E402
 from h2viz.pipeline import EvalFrames  # noqa: E402
 from h2viz.sources.base import FrameSource, make_source  # noqa: E402
@@ -155,12 +158,16 @@ def score(stream: Stream, mesh: trimesh.Trimesh, render: Renderer, downscale: in
     return out
 
 
-def run_anytime(stream: Stream, name: str, downscale: int, after_s: Sequence[float]) -> list[Row]:
-    """The stream into real-time mode; a row at its end and after each of `after_s` seconds of optimisation."""
+def run_anytime(
+    stream: Stream, name: str, downscale: int, after_s: Sequence[float], autosave: Path | None = None
+) -> list[Row]:
+    """The stream into real-time mode; a row at its end and after each of `after_s` seconds of optimisation.
+    `autosave`: a folder to autosave into (autosave.*), as `h2viz map --realtime` does into its run folder."""
     warm_up(stream)
     mapper = Mapper(stream.cfg.mapping)
     feed = FrameFeed(ReplaySource(stream.played), WorkerSettings(realtime=True), 0, stream.cfg.anytime.backlog_frames)
-    run = AnytimeRun(mapper, feed, stream.cfg.anytime)
+    saver = None if autosave is None else Autosaver(autosave, stream.cfg.autosave)
+    run = AnytimeRun(mapper, feed, stream.cfg.anytime, autosave=saver)
     _log(f"    anytime: playing {len(stream.played)} frames over {stream.duration_s:.1f} s")
     feed.start()
     try:
@@ -176,6 +183,8 @@ def run_anytime(stream: Stream, name: str, downscale: int, after_s: Sequence[flo
         r.scores = score(stream, mapper.mesh(), mapper.render, downscale)
         if t.dropped:
             r.note = f"{t.passed_over} frames read too late, {t.overflowed} beyond the backlog"
+        if saver is not None:
+            r.note = "; ".join(filter(None, [r.note, f"{saver.saves} autosaves (autosave.*)"]))
         return r
 
     rows = [row("end of stream")]
@@ -244,17 +253,22 @@ def run_sequence(ds: Dataset, methods: Sequence[str], args: argparse.Namespace) 
     except H2vizError as e:
         return [Row(ds.name, m, note=str(e)) for m in methods]
     downscale = args.downscale or stream.cfg.eval.render_downscale
+    autosave = Path(tempfile.mkdtemp(prefix="h2viz-bench-")) if args.autosave else None
     runners: dict[str, Callable[[], list[Row]]] = {
-        "anytime": lambda: run_anytime(stream, ds.name, downscale, args.after),
+        "anytime": lambda: run_anytime(stream, ds.name, downscale, args.after, autosave),
         "every-frame": lambda: [run_every_frame(stream, ds.name, downscale)],
         "tsdf": lambda: [run_tsdf(stream, ds.name, downscale, args)],
     }
     rows: list[Row] = []
-    for m in methods:
-        try:
-            rows += runners[m]()
-        except H2vizError as e:
-            rows.append(Row(ds.name, m, note=str(e)))
+    try:
+        for m in methods:
+            try:
+                rows += runners[m]()
+            except H2vizError as e:
+                rows.append(Row(ds.name, m, note=str(e)))
+    finally:
+        if autosave is not None:
+            shutil.rmtree(autosave, ignore_errors=True)
     return rows
 
 
@@ -269,7 +283,7 @@ def report(rows: list[Row], args: argparse.Namespace) -> str:
         "stream).",
     ]
     lines += [f"- {d}: {DATASETS[d].note}" for d in dict.fromkeys(r.sequence for r in rows)]
-    lines += [f"- {r.method} on {r.sequence}: {r.note}" for r in rows if r.note]
+    lines += list(dict.fromkeys(f"- {r.method} on {r.sequence}: {r.note}" for r in rows if r.note))  # once a run
     lines += ["", f"command: {command_line('bench/realtime.py')}"]
     return "\n".join(lines)
 
@@ -284,6 +298,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--downscale", type=int, default=None, help="held-out renders at 1/N (default: eval's)")
     p.add_argument(
         "--after", default=AFTER_S, help=f"seconds of optimisation after the stream to score at (default {AFTER_S})"
+    )
+    p.add_argument(
+        "--autosave", action="store_true", help="anytime autosaves (autosave.*) as `h2viz map --realtime` does"
     )
     p.add_argument("--doc", default=None, help="also write the table, with commit and CPU, to this page")
     p.add_argument("--tsdf-voxel-m", type=float, default=0.01, help="TSDF voxel size (default 1 cm)")

@@ -35,9 +35,11 @@ import dataclasses
 import os
 import re
 import shlex
+import shutil
 import statistics
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -303,17 +305,19 @@ def mapping_run(
     record: bool = False,
     background: bool = False,
     remote: bool = False,
+    autosave_dir: Path | None = None,
 ) -> tuple[Run, MappingWorker, Dashboard, Any]:
     """Map with the dashboard and `n_browsers` pages open. With `record`, page 0's websocket frames are
     shipped to this process and decoded to time mesh arrivals: that costs both cores real CPU, so speed is
     measured in runs without it. `background` gives the browsers the lowest CPU priority (see --browser-background);
-    `remote` connects `n_browsers` REMOTE_CLIENT processes instead of browsers."""
+    `remote` connects `n_browsers` REMOTE_CLIENT processes instead of browsers; `autosave_dir`: autosaves go there,
+    as the app's go to its run folder (None: none)."""
     from h2viz.mapping.mapper import Mapper
 
     run, wire = Run(n_browsers, recorded=record, background=background, remote=remote), Wire()
     source = Preloaded(cfg)
     cfg = dataclasses.replace(cfg, source=source.cfg)  # every preloaded frame, in order
-    worker = MappingWorker(source, Mapper(cfg.mapping), cfg)
+    worker = MappingWorker(source, Mapper(cfg.mapping), cfg, autosave_dir=autosave_dir)
     dashboard = Dashboard(worker, cfg, port=0)
     dashboard.layers.mesh.set_enabled(not hide_mesh)
     dashboard.layers.mesh.on_sent.append(wire.on_sent)
@@ -538,6 +542,11 @@ def main() -> None:
         "time mapping leaves idle",
     )
     parser.add_argument(
+        "--autosave",
+        action="store_true",
+        help="autosave (autosave.*) into a temporary folder, as the app does into its run folder",
+    )
+    parser.add_argument(
         "--config", default=str(ROOT / "configs" / "fast.yaml"), help="config file over the defaults ('' = none)"
     )
     parser.add_argument("overrides", nargs="*", help="config overrides, e.g. mapping.optimization.max_iters=5")
@@ -566,8 +575,9 @@ def main() -> None:
                         runs.append(dataclasses.replace(headless_run(cfg_of()), repeat=repeat))
                     continue
                 n, record, remote = step
+                folder = Path(tempfile.mkdtemp(prefix="h2viz-bench-")) if args.autosave else None
                 run, worker, dashboard, browser = mapping_run(
-                    cfg_of(), n, playwright, args.hide_mesh, record, args.browser_background, remote
+                    cfg_of(), n, playwright, args.hide_mesh, record, args.browser_background, remote, folder
                 )
                 run.repeat = repeat
                 runs.append(run)
@@ -580,6 +590,10 @@ def main() -> None:
                     browser.close()
                 dashboard.stop()
                 worker.stop()
+                if folder is not None:
+                    saves = worker._autosave.saves if worker._autosave is not None else 0
+                    print(f"{run.label}: {saves} autosaves", file=sys.stderr)
+                    shutil.rmtree(folder, ignore_errors=True)
     print_tables(runs, renders, shlex.join([".venv/bin/python", "bench/viewer.py", *sys.argv[1:]]))
 
 

@@ -40,6 +40,13 @@ COLOR_POINTS = 160_000
 pixels a 1.25 cm lattice cell up to 4 m away at 70 deg, for ~15 ms a frame instead of ~30."""
 
 
+def every_kth(points: np.ndarray, n: int, frame_index: int) -> np.ndarray:
+    """At most `n` of a frame's points (P,3): every k-th, starting at frame_index mod k. Frames in a row start at
+    other pixels: with a fixed start, every frame of a 640-pixel-wide image would sample the same columns."""
+    k = max(1, -(-len(points) // max(1, n)))
+    return points[frame_index % k :: k]
+
+
 class Mapper:
     """Octree SDF priors + hash-grid residual field, optimised frame by frame with coverage keyframes."""
 
@@ -179,9 +186,9 @@ class Mapper:
             alloc = self.octree.allocate(points)  # voxels with > 10 points (+ expanded neighbours)
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
             self._init_priors(frame)  # project new corners into the depth image
-            self._add_colors(points, rays, color_points)  # the colour prior averages the frame's pixel colours
+            self._add_colors(points, rays, color_points, frame.index)  # the colour prior averages pixel colours
             self.color_views.add(frame)  # renders take colour from the nearest stored views
-            self.observed.add(self.octree, points[:: max(1, len(points) // max(1, observed_points))])  # meshing
+            self.observed.add(self.octree, every_kth(points, observed_points, frame.index))  # meshing
         with timer("keyframes"):
             if self.keyframes.should_insert(frame.index, alloc.observed):  # IoU / max-gap rule
                 self._add_keyframe(frame, rays, alloc.observed)
@@ -217,15 +224,15 @@ class Mapper:
         self.priors.grow(self.octree.n_corners, new_voxels)
         self.touched = np.concatenate([self.touched, np.zeros(self.octree.n_voxels - self.touched.size, bool)])
 
-    def _add_colors(self, points: np.ndarray, rays: FrameRays, color_points: int = COLOR_POINTS) -> None:
-        """Splat the colours of up to `color_points` of the frame's valid pixels (every k-th) into the colour
-        prior."""
+    def _add_colors(self, points: np.ndarray, rays: FrameRays, color_points: int, frame_index: int) -> None:
+        """Splat the colours of up to `color_points` of the frame's valid pixels (every k-th, see `every_kth`)
+        into the colour prior."""
         if self.field.color_prior is None:
             return
         k = max(1, -(-len(points) // max(1, color_points)))
-        rgb_u8 = rays.rgb[::k].cpu().numpy()  # (P/k,3) uint8; NumPy converts it ~10x faster than torch here
+        rgb_u8 = rays.rgb[frame_index % k :: k].cpu().numpy()  # (P/k,3) uint8; NumPy converts ~10x faster here
         rgb = torch.from_numpy(rgb_u8.astype(np.float32) / np.float32(255.0)).to(self.device)
-        self.field.add_colors(torch.from_numpy(points[::k]).to(self.device), rgb)
+        self.field.add_colors(torch.from_numpy(every_kth(points, color_points, frame_index)).to(self.device), rgb)
 
     @torch.no_grad()
     def _init_priors(self, frame: RgbdFrame) -> None:
