@@ -137,7 +137,8 @@ class Autosaver:
     ) -> None:
         """`frames_done`: the frames mapped before this run (a resumed run's), where counting starts; `writer`
         (mapper, path, extra) writes the checkpoint (default: save_checkpoint); `prepare` (mapper, extra) takes
-        the state and returns what writes it to a path, on another thread (default: prepare_checkpoint)."""
+        the state and returns what writes it to a path, on another thread (default: prepare_checkpoint; with only a
+        `writer`, the writer itself runs on that thread)."""
         self.path = Path(folder) / AUTOSAVE_NAME
         self.cfg, self._clock, self._writer, self._prepare = cfg, clock, writer, prepare
         self._last_frames = frames_done
@@ -183,12 +184,21 @@ class Autosaver:
             if not background:
                 (self._writer or save_checkpoint)(mapper, self.path, extra)
                 return self._done(None)
-            write = (self._prepare or prepare_checkpoint)(mapper, extra)
+            write = self._preparer(prepare_checkpoint)(mapper, extra)
         except (CheckpointError, OSError) as e:
             return self._done(e)
         self._thread = threading.Thread(target=self._write, args=(write,), name="h2viz-autosave", daemon=True)
         self._thread.start()
         return None
+
+    def _preparer(self, default: Preparer) -> Preparer:
+        """`prepare`; else, with a `writer`, one that leaves the writing to it; else `default`."""
+        if self._prepare is not None:
+            return self._prepare
+        writer = self._writer
+        if writer is not None:
+            return lambda mapper, extra: lambda path: writer(mapper, path, extra)
+        return default
 
     def _write(self, write: Callable[[Path], Any]) -> None:
         """(autosave thread) Write a prepared state; a failure waits for `maybe_save` to report it."""
