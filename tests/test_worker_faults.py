@@ -4,6 +4,7 @@ goes on, resumes a run folder after its last frame, and never overwrites an earl
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -142,6 +143,24 @@ def test_a_failed_render_or_export_is_reported_after_an_autosave_and_mapping_goe
     assert worker.errors[1].startswith("a mesh export failed (OSError: [Errno 28] No space); mapping goes on")
     assert len(worker.errors) == 2  # autosaved once: the export came within a minute of the render
     assert load_checkpoint(tmp_path / AUTOSAVE_NAME)[0].frames_done == 4
+
+
+def test_the_dashboard_writes_its_autosaves_in_the_background_at_the_frames_they_are_due(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    write, writes = checkpoint_format.write, []
+
+    def noting(state: dict, path: Path) -> None:
+        writes.append((state["frames_done"], state["extra"]["last_index"], threading.current_thread().name))
+        write(state, path)
+
+    monkeypatch.setattr(checkpoint_format, "write", noting)
+    cfg = config(tmp_path, every=2)
+    worker = run(MappingWorker(BoxRoomSource(n=5), recording_mapper(cfg.mapping), cfg, autosave_dir=tmp_path))
+    mapped = [s.index for s in worker.slot.get()[1].stats]
+    assert [(n, last) for n, last, _ in writes] == [(2, mapped[1]), (4, mapped[3])]  # every 2 frames, none skipped
+    assert {name for _, _, name in writes} == {"h2viz-autosave"} and not worker.errors  # off the mapping thread
+    assert load_checkpoint(tmp_path / AUTOSAVE_NAME)[0].frames_done == 4  # written before the worker stopped
 
 
 def test_the_worker_autosaves_a_realtime_run_and_resumes_it_after_its_last_integrated_frame(

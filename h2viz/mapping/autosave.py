@@ -124,7 +124,8 @@ class Autosaver:
     While a live stream plays (`streaming`), autosaves come by time alone (every_frames counts frames at the pace
     of every-frame mapping: at 30 Hz, 50 frames pass in under 2 s, less than a write takes) and are written in the
     background: the mapping thread only takes the state (`prepare_checkpoint`), a thread writes it while frames
-    go on being integrated. One write runs at a time; any other save waits for it first."""
+    go on being integrated. The dashboard writes every-frame autosaves in the background too (`background`).
+    One write runs at a time; any other save waits for it first."""
 
     def __init__(
         self,
@@ -178,7 +179,7 @@ class Autosaver:
         a failed write (a background one's comes from a later `maybe_save`). Waits for a write in progress."""
         from h2viz.mapping.checkpoint import prepare_checkpoint, save_checkpoint
 
-        self.wait()
+        earlier = self.wait()  # the previous write's failure, if it failed
         self._last_frames, self._last_t = frames_done, self._clock()
         try:
             if not background:
@@ -189,7 +190,7 @@ class Autosaver:
             return self._done(e)
         self._thread = threading.Thread(target=self._write, args=(write,), name="h2viz-autosave", daemon=True)
         self._thread.start()
-        return None
+        return earlier
 
     def _preparer(self, default: Preparer) -> Preparer:
         """`prepare`; else, with a `writer`, one that leaves the writing to it; else `default`."""
@@ -226,13 +227,19 @@ class Autosaver:
         return failed
 
     def maybe_save(
-        self, mapper: Mapper, frames_done: int, extra: Callable[[], dict[str, Any]], streaming: bool = False
+        self,
+        mapper: Mapper,
+        frames_done: int,
+        extra: Callable[[], dict[str, Any]],
+        streaming: bool = False,
+        background: bool | None = None,
     ) -> str | None:
-        """`save` when one is due (`extra` is called only then; `streaming`: due by time alone, written in the
-        background, and not while a write is in progress); None, or the message of a failed write (a finished
-        background write's first)."""
+        """`save` when one is due (`extra` is called only then); None, or the message of a failed write (a finished
+        background write's first). `streaming`: due by time alone, and none while a write is in progress (the
+        stream must not wait for it); `background` (default: `streaming`): written on a thread. Outside a stream
+        a due autosave waits for a write in progress, so autosaves come at the same frames either way."""
         if not self.writing and self._unreported is not None:
             return self.wait()
-        if not self.enabled or self.writing or not self.due(frames_done, streaming):
+        if not self.enabled or (streaming and self.writing) or not self.due(frames_done, streaming):
             return None
-        return self.save(mapper, frames_done, extra(), background=streaming)
+        return self.save(mapper, frames_done, extra(), background=streaming if background is None else background)

@@ -154,8 +154,8 @@ class MappingWorker(CommandServing):
         if self._thread.is_alive():
             self._thread.join(timeout=timeout_s)
         self.meshing.stop(timeout_s)
-        if self._autosave is not None:  # a background autosave in progress finishes
-            self._autosave.wait()
+        if self._autosave is not None and (failed := self._autosave.wait()) is not None:  # a write in progress
+            self._errors.append(failed)
         self.stop_recording()
         self._fail_pending(H2vizError("the mapping worker stopped before serving this request"))
 
@@ -380,7 +380,9 @@ class MappingWorker(CommandServing):
             self._submit_mesh(REFRESH_S)  # not while a job runs: freezing the field costs ~15 ms a frame
         self._resolve_steps(stats)
         if self._autosave is not None:
-            failed = self._autosave.maybe_save(self.mapper, self._n_mapped, self._autosave_extra, streaming=anytime)
+            failed = self._autosave.maybe_save(
+                self.mapper, self._n_mapped, self._autosave_extra, streaming=anytime, background=True
+            )
             if failed is not None:
                 self._errors.append(failed)
         self._publish()
