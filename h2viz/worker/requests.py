@@ -120,20 +120,14 @@ def save_checkpoint(mapper: Mapper, path: str | Path, extra: dict[str, Any] | No
     return str(path)
 
 
-def prepare_checkpoint(mapper: Mapper, extra: dict[str, Any] | None = None) -> Callable[[Path], str]:
+def prepare_checkpoint(mapper: Mapper, extra: dict[str, Any] | None = None) -> Callable[[Path], object]:
     """`save_checkpoint` in two halves: the mapping state taken now, and what writes it on any thread (see
     h2viz.mapping.checkpoint.prepare_checkpoint)."""
     if hasattr(mapper, "save_checkpoint"):  # a mapper that writes itself
         return lambda path: save_checkpoint(mapper, path, extra)
     from h2viz.mapping.checkpoint import prepare_checkpoint as prepare
 
-    write = prepare(mapper, extra)
-
-    def written(path: Path) -> str:
-        write(Path(path))
-        return str(path)
-
-    return written
+    return prepare(mapper, extra)
 
 
 MAPPER_SETTINGS = {"mesh_resolution": int, "mesh_observed_only": bool}
