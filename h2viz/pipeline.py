@@ -289,6 +289,7 @@ def _map_anytime(
         bar.set_postfix(steps=run.totals.stream_steps, dropped=feed.dropped, vox=mapper.octree.n_voxels)
         return frame.index > last_index
 
+    mapper.warm_up()  # kernels loaded while the first frames arrive would cost the stream ~30 of them
     feed.start()
     try:
         try:

@@ -228,6 +228,19 @@ class SlowRoomSource(BoxRoomSource):
         return super().load(position, key)  # type: ignore[arg-type]
 
 
+def test_a_realtime_stream_starts_once_the_kernels_are_loaded(make_worker: Factory) -> None:
+    source, mapper = BoxRoomSource(n=8), FakeMapper()  # 30 Hz: the stream lasts 0.27 s
+    mapper.warm_up_s = 0.6  # longer than the stream: frames read meanwhile would overflow the backlog
+    worker = make_worker(source, mapper, cfg=anytime_cfg(backlog_frames=4), realtime=True)
+    assert worker.wait_finished(20)
+    snap = worker.slot.get()[1]
+    assert [s.index for s in snap.stats] == list(range(8)) and snap.dropped == 0
+    assert mapper.events[0] == ("warm_up", -1) and [k for k, _ in mapper.events].count("warm_up") == 1
+    every_frame = FakeMapper()  # its first frame loads them as well as a warm-up would
+    assert make_worker(BoxRoomSource(n=3), every_frame).wait_finished(20)
+    assert ("warm_up", -1) not in every_frame.events
+
+
 def test_realtime_mode_passes_over_overdue_frames_without_reading_them(make_worker: Factory) -> None:
     source = SlowRoomSource(n=120)  # 4 s of stream; reading every frame would take 12 s
     worker = make_worker(source, FakeMapper(), cfg=anytime_cfg(backlog_frames=4), realtime=True)

@@ -15,6 +15,7 @@ import trimesh
 from h2viz.config import MappingConfig
 from h2viz.mapping.backend import Backend, resolve_backend
 from h2viz.mapping.field.color_views import ColorViews
+from h2viz.mapping.field.copy_pool import CopyPool
 from h2viz.mapping.field.corner_prior import PriorInitializer
 from h2viz.mapping.field.hybrid_field import HybridField
 from h2viz.mapping.field.octree import Allocation, VoxelOctree
@@ -29,6 +30,7 @@ from h2viz.mapping.rendering.losses import check_color_settings, color_error, ma
 from h2viz.mapping.rendering.volume import composite, live_samples, render_weights
 from h2viz.mapping.sampling.rays import FrameRays, RayBatch, sample_frames
 from h2viz.mapping.sampling.samples import BandLayout, Samples, band_samples, sample_rays
+from h2viz.mapping.warmup import warm_up
 from h2viz.timing import StageTimer
 from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
 
@@ -84,6 +86,7 @@ class Mapper:
         self.thumbnails: list[np.ndarray] = []
         self.keyframe_budget = KeyframeBudget(kf.keyframe_budget_mb)  # retires / thins keyframes past the budget
         self.color_views = ColorViews(views.color_views, views.color_views_mb, views.color_views_field)  # rendering
+        self.copy_pool = CopyPool()  # memory for the frozen fields of mesh jobs, reused job after job
         self.mesher = ChunkedMesher(rep.voxel_size_m, mesh.mesh_resolution, mesh.chunk_voxels, self.backend)
         self.touched = np.zeros(0, dtype=bool)  # (V,) voxels allocated or observed since the last mesh job
         self.trajectory: list[np.ndarray] = []
@@ -138,6 +141,11 @@ class Mapper:
         self._live = (frame.index, rays, alloc.observed, None)  # keyframes selected at its first step
         self._finish_frame(frame, alloc)
         return self._frame_stats(frame, start, 0, {}, timer)
+
+    def warm_up(self) -> float:
+        """Load the compiled kernels this map's configuration runs (see `warmup`), before a live stream starts;
+        the seconds it took (0 when they were loaded before). The map itself is not touched."""
+        return warm_up(self.cfg)
 
     def live_step(self) -> float:
         """One optimisation step on the newest frame `add_frame` integrated plus the K keyframes coverage selects
@@ -416,7 +424,7 @@ class Mapper:
             meshable = np.flatnonzero(initialised)  # (V',) voxel ids
         dirty = self.touched[meshable] & (not whole)
         band = self.cfg.meshing.mesh_prior_band if self.cfg.representation.priors else 0.0
-        field = FrozenField(self.field, self.cfg.representation.truncation_m, band, self.backend)
+        field = FrozenField(self.field, self.cfg.representation.truncation_m, band, self.backend, self.copy_pool)
         coords = self.octree.voxel_coords()[meshable]
         return MeshJob(
             mesher, coords, meshable, dirty, field, self.version, self.frames_done, refresh_s, whole, support

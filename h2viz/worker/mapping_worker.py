@@ -227,6 +227,8 @@ class MappingWorker(CommandServing):
     def _run(self) -> None:
         try:
             self._gt = self.source.ground_truth_mesh()
+            if self.settings.realtime:  # kernels loaded at the first frames would cost a live stream ~30 of them
+                log.info("kernels ready in %.1f s", self.mapper.warm_up())
             self._feed.hold(self._paused)
             self._feed.start()
             self._publish()

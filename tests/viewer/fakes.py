@@ -117,7 +117,14 @@ class FakeMapper:
         self.add_delay_s = 0.0  # real-time mode: seconds `add_frame` takes...
         self.step_delay_s = 0.0  # ...and each live or refinement step
         self.live_steps = self.refine_steps = 0
-        self.events: list[tuple[str, int]] = []  # ("add", frame index) / ("live", frame) / ("refine", -1) in order
+        # ("warm_up", -1) / ("add", frame index) / ("live", frame) / ("refine", -1), in order
+        self.events: list[tuple[str, int]] = []
+        self.warm_up_s = 0.0  # seconds `warm_up` takes (loading kernels)
+
+    def warm_up(self) -> float:
+        time.sleep(self.warm_up_s)
+        self.events.append(("warm_up", -1))
+        return self.warm_up_s
 
     @property
     def mesh_resolution(self) -> int:

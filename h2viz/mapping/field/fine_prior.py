@@ -25,6 +25,7 @@ from h2viz.mapping.field.row_storage import RowStorage
 
 if TYPE_CHECKING:
     from h2viz.mapping.backend import Backend
+    from h2viz.mapping.field.copy_pool import CopyPool
 
 SUB = 8
 """Lattice cells per voxel edge (SUB + 1 points per edge, 1.25 cm apart at 10 cm voxels)."""
@@ -60,10 +61,11 @@ class FinePrior:
             self.state = self.state.to(device)
             self._storage.release()
 
-    def frozen(self) -> FinePrior:
-        """A copy of the lattices as they are now (for a frozen field: the live map keeps fusing into its own)."""
+    def frozen(self, pool: CopyPool | None = None, owner: object = None) -> FinePrior:
+        """A copy of the lattices as they are now (for a frozen field: the live map keeps fusing into its own); with
+        a `pool`, in memory from it that returns to it when `owner` is collected."""
         view = FinePrior(self.voxel_size_m, self.truncation_m, self.backend)
-        view.state = self.state.clone()
+        view.state = self.state.clone() if pool is None else pool.copy(self.state, owner)
         return view
 
     def load(self, state: torch.Tensor) -> None:

@@ -14,7 +14,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+from torch import nn
 
+from h2viz.mapping.field.copy_pool import CopyPool
 from h2viz.mapping.field.hybrid_field import HybridField, keep_prior_sign
 from h2viz.mapping.meshing.mesher import ChunkedMesher, ChunkKey
 from h2viz.mapping.meshing.observed import ObservedSupport
@@ -36,19 +38,30 @@ class FrozenField:
     """
 
     def __init__(
-        self, field: HybridField, truncation_m: float, prior_band: float = 0.0, backend: Backend | None = None
+        self,
+        field: HybridField,
+        truncation_m: float,
+        prior_band: float = 0.0,
+        backend: Backend | None = None,
+        pool: CopyPool | None = None,
     ) -> None:
+        """`pool`: where the large copies (hash tables, fine lattices) take their memory from; their storage goes
+        back to it when this field is collected (None: fresh memory for each)."""
         prior, fine, octree = field.color_prior, field.fine_prior, field.octree
         field.color_prior, field.fine_prior, field.octree = None, None, None  # not deep-copied (~18 kB a voxel)
+        memo: dict[int, object] = {}
+        if pool is not None:  # deepcopy takes the pooled copies of the large parameters from its memo
+            for p in field.parameters():
+                memo[id(p)] = nn.Parameter(pool.copy(p, self), requires_grad=False)
         try:
             with torch.no_grad():
-                frozen = copy.deepcopy(field)
+                frozen = copy.deepcopy(field, memo)
                 frozen.requires_grad_(False)
                 frozen.priors = frozen.priors.detach()
         finally:
             field.color_prior, field.fine_prior, field.octree = prior, fine, octree
         frozen.color_prior = None if prior is None else prior.shared()
-        frozen.fine_prior = None if fine is None else fine.frozen()  # geometry frozen too (~6 kB a voxel)
+        frozen.fine_prior = None if fine is None else fine.frozen(pool, self)  # geometry frozen too (~6 kB a voxel)
         frozen.octree = octree  # its lookups beyond the frozen voxels are ignored by the colour prior
         self.field = frozen
         self.truncation_m = float(truncation_m)

@@ -4,6 +4,7 @@ exactly the mesh a fresh mesher makes from the same field."""
 
 from __future__ import annotations
 
+import gc
 import threading
 from dataclasses import replace
 
@@ -15,6 +16,8 @@ from scipy.spatial import cKDTree
 
 from h2viz.config import MappingConfig
 from h2viz.geometry import backproject
+from h2viz.mapping.field import copy_pool
+from h2viz.mapping.field.copy_pool import CopyPool
 from h2viz.mapping.field.octree import encode
 from h2viz.mapping.mapper import Mapper
 from h2viz.mapping.meshing.job import FrozenField, keep_prior_sign
@@ -82,6 +85,38 @@ def test_frozen_field_ignores_later_training() -> None:
     np.testing.assert_array_equal(frozen.sdf_m(points, ids), sdf)
     np.testing.assert_array_equal(frozen.color_u8(points), rgb)
     assert not np.allclose(mapper.sdf_m(points), sdf)
+
+
+def test_frozen_fields_reuse_the_memory_of_those_gone_and_still_ignore_later_training(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(copy_pool, "MIN_BYTES", 100_000)  # pool the small test tables too (512 kB)
+    mapper, _, _ = sphere_mapper(2, color_prior=False, color_supervision="surface")
+    tr = mapper.cfg.representation.truncation_m
+    pool = CopyPool()
+    first = FrozenField(mapper.field, tr, backend=mapper.backend, pool=pool)
+    points, ids = probe_points(mapper, 5000)
+    sdf = first.sdf_m(points, ids)
+    mapper.refine(3)  # trains the hash tables, decoders and priors in place
+    np.testing.assert_array_equal(first.sdf_m(points, ids), sdf)  # pooled copies are copies
+    copies = pool.allocated
+    assert copies == 3  # the two hash tables and the fine lattices
+    del first
+    gc.collect()
+    second = FrozenField(mapper.field, tr, backend=mapper.backend, pool=pool)
+    assert pool.allocated == copies and pool.reused == copies  # every copy into the memory of the first
+    fresh = FrozenField(mapper.field, tr, backend=mapper.backend)
+    np.testing.assert_array_equal(second.sdf_m(points, ids), fresh.sdf_m(points, ids))
+    assert not np.array_equal(second.sdf_m(points, ids), sdf)
+
+
+def test_mesh_jobs_take_their_frozen_fields_from_the_mappers_pool() -> None:
+    mapper, scene, poses = sphere_mapper(2, hash_log2_size=18)  # tables of 2 MB: pooled
+    mapper.mesh_job(whole=True).run()  # type: ignore[union-attr]
+    mapper.integrate(scene.frame(2, poses[2]))
+    job = mapper.mesh_job(0.0)
+    assert job is not None and mapper.copy_pool.reused >= 2  # the first job's storages, the tables at least
+    job.run()
 
 
 def test_frozen_field_shares_the_colour_priors_instead_of_copying_them() -> None:
