@@ -32,8 +32,8 @@ def scratch_frame(width: int = 160, height: int = 120) -> RgbdFrame:
 
 def warm_up(cfg: MappingConfig) -> float:
     """Load (or compile) the kernels that mapping with `cfg` runs, once per process and configuration: integrate a
-    scratch frame in both modes, take a live step, mesh the result whole and update that mesh. Returns the seconds it took (0 when this
-    configuration was warmed up before)."""
+    scratch frame in both modes, take a live step, mesh the result whole and update that mesh. Returns the seconds
+    it took (0 when this configuration was warmed up before)."""
     from h2viz.mapping.mapper import Mapper  # torch and numba load here, not with the worker
 
     key = repr(cfg)
