@@ -16,7 +16,7 @@ import torch
 
 MIN_BYTES = 1 << 20  # smaller tensors are cloned: their pages are few and the allocator reuses them anyway
 HEADROOM = 1.5  # a new storage is this much larger than its first copy, so that the growing lattices fit it again
-MAX_FREE = 6  # storages kept for reuse; the smallest beyond these are let go
+MAX_FREE = 3  # storages kept for reuse (one frozen field's: two hash tables, the fine lattices); the smallest beyond go
 
 
 class CopyPool:
