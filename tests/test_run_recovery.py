@@ -173,6 +173,25 @@ def test_a_full_disk_keeps_mapping_and_the_previous_autosave(tmp_path: Path, mon
     assert load_checkpoint(out / "autosave.pt")[1]["last_index"] == 10
 
 
+def test_h2viz_map_writes_its_autosaves_in_the_background_at_the_frames_they_are_due(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    write, writes = checkpoint_format.write, []
+
+    def noting(state: dict, path: Path) -> None:
+        writes.append((state["frames_done"], state["extra"]["last_index"], threading.current_thread().name, path.name))
+        write(state, path)
+
+    monkeypatch.setattr(checkpoint_format, "write", noting)
+    out = tmp_path / "run"
+    assert main(map_args(out, 6)) == 0
+    autosaves = [(n, last, thread) for n, last, thread, name in writes if name == AUTOSAVE_NAME]
+    assert [(n, last) for n, last, _ in autosaves] == [(2, 10), (4, 30), (6, 50)]  # every 2 frames, none skipped
+    assert {thread for _, _, thread in autosaves} == {"h2viz-autosave"}  # off the mapping thread
+    assert writes[-1][3] == "checkpoint.pt" and not stats_of(out)["errors"]  # after the last autosave
+    assert load_checkpoint(out / AUTOSAVE_NAME)[1]["last_index"] == 50
+
+
 def test_a_realtime_run_autosaves_and_resuming_it_goes_on_after_its_last_integrated_frame(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
