@@ -159,13 +159,22 @@ def score(stream: Stream, mesh: trimesh.Trimesh, render: Renderer, downscale: in
 
 
 def run_anytime(
-    stream: Stream, name: str, downscale: int, after_s: Sequence[float], autosave: Path | None = None
+    stream: Stream,
+    name: str,
+    downscale: int,
+    after_s: Sequence[float],
+    autosave: Path | None = None,
+    prepare_ahead: bool = True,
 ) -> list[Row]:
     """The stream into real-time mode; a row at its end and after each of `after_s` seconds of optimisation.
-    `autosave`: a folder to autosave into (autosave.*), as `h2viz map --realtime` does into its run folder."""
+    `autosave`: a folder to autosave into (autosave.*), as `h2viz map --realtime` does into its run folder;
+    `prepare_ahead`: frames prepared on the reader thread (as `h2viz map --realtime` does) or the mapping thread."""
     warm_up(stream)
     mapper = Mapper(stream.cfg.mapping)
-    feed = FrameFeed(ReplaySource(stream.played), WorkerSettings(realtime=True), 0, stream.cfg.anytime.backlog_frames)
+    backlog = stream.cfg.anytime.backlog_frames
+    settings = WorkerSettings(realtime=True)
+    prepare = mapper.prepare_ahead if prepare_ahead else None
+    feed = FrameFeed(ReplaySource(stream.played), settings, 0, backlog, prepare=prepare)
     saver = None if autosave is None else Autosaver(autosave, stream.cfg.autosave)
     run = AnytimeRun(mapper, feed, stream.cfg.anytime, autosave=saver)
     _log(f"    anytime: playing {len(stream.played)} frames over {stream.duration_s:.1f} s")
@@ -185,6 +194,8 @@ def run_anytime(
             r.note = f"{t.passed_over} frames read too late, {t.overflowed} beyond the backlog"
         if saver is not None:
             r.note = "; ".join(filter(None, [r.note, f"{saver.saves} autosaves (autosave.*)"]))
+        if not prepare_ahead:
+            r.note = "; ".join(filter(None, [r.note, "frames prepared on the mapping thread"]))
         return r
 
     rows = [row("end of stream")]
@@ -255,7 +266,9 @@ def run_sequence(ds: Dataset, methods: Sequence[str], args: argparse.Namespace) 
     downscale = args.downscale or stream.cfg.eval.render_downscale
     autosave = Path(tempfile.mkdtemp(prefix="h2viz-bench-")) if args.autosave else None
     runners: dict[str, Callable[[], list[Row]]] = {
-        "anytime": lambda: run_anytime(stream, ds.name, downscale, args.after, autosave),
+        "anytime": lambda: run_anytime(
+            stream, ds.name, downscale, args.after, autosave, not args.prepare_on_mapping_thread
+        ),
         "every-frame": lambda: [run_every_frame(stream, ds.name, downscale)],
         "tsdf": lambda: [run_tsdf(stream, ds.name, downscale, args)],
     }
@@ -301,6 +314,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument(
         "--autosave", action="store_true", help="anytime autosaves (autosave.*) as `h2viz map --realtime` does"
+    )
+    p.add_argument(
+        "--prepare-on-mapping-thread",
+        action="store_true",
+        help="anytime: prepare each frame (rays, voxels to allocate) on the mapping thread, not the reader's",
     )
     p.add_argument("--doc", default=None, help="also write the table, with commit and CPU, to this page")
     p.add_argument("--tsdf-voxel-m", type=float, default=0.01, help="TSDF voxel size (default 1 cm)")

@@ -283,7 +283,9 @@ def _map_anytime(
     last_index, stats = earlier
     settings = WorkerSettings(realtime=True, stride=max(1, cfg.source.stride))
     position = _read_mapped(source, last_index, eval_frames)
-    feed = FrameFeed(source, settings, cfg.source.max_frames, cfg.anytime.backlog_frames, start_after=last_index)
+    feed = FrameFeed(
+        source, settings, cfg.source.max_frames, cfg.anytime.backlog_frames, last_index, mapper.prepare_ahead
+    )
     run = AnytimeRun(mapper, feed, cfg.anytime, autosave=autosave, earlier=stats)
 
     def arrived(frame: RgbdFrame) -> bool:

@@ -204,3 +204,24 @@ def test_a_feed_passes_over_the_frames_a_resumed_run_mapped_without_reading_them
     frames = [feed.take(10.0) for _ in range(3)]
     feed.stop()
     assert [f.index for f in frames[:2]] == [6, 8] and frames[2] is END and source.loaded == [6, 8]
+
+
+def test_in_real_time_a_feed_prepares_each_frame_on_its_reader_thread_before_queueing_it() -> None:
+    prepared: list[tuple[int, str]] = []
+
+    def prepare(frame: Any) -> None:
+        prepared.append((frame.index, threading.current_thread().name))
+        if frame.index == 2:
+            raise ValueError("a frame its preparation fails on")  # delivered anyway: integrating it reports it
+
+    feed = FrameFeed(BoxRoomSource(n=4), WorkerSettings(realtime=True), 0, prepare=prepare)
+    feed.start()
+    taken = [feed.take(10.0) for _ in range(5)]
+    feed.stop()
+    assert [f.index for f in taken[:4]] == [0, 1, 2, 3] and taken[4] is END
+    assert [i for i, _ in prepared] == [0, 1, 2, 3] and {name for _, name in prepared} == {"h2viz-frames"}
+    every_frame = FrameFeed(BoxRoomSource(n=2), WorkerSettings(), 0, prepare=prepare)  # mapped as it comes
+    every_frame.start()
+    assert [every_frame.take(10.0).index for _ in range(2)] == [0, 1]
+    every_frame.stop()
+    assert len(prepared) == 4

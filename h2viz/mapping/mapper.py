@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
@@ -34,6 +37,8 @@ from h2viz.mapping.warmup import warm_up
 from h2viz.timing import StageTimer
 from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
 
+AHEAD_KEPT = 32  # frames prepared ahead that wait for add_frame, at most (a full 30-frame backlog: ~220 MB)
+_READER = threading.local()  # .serial: this thread prepares frames ahead (its kernels on one core)
 OBSERVED_POINTS = 60_000
 """Depth points a frame marks observed cells with (every k-th valid one): a fifth of a 640x480 frame, which at
 70 deg stays about as dense as the 1.25 cm cells up to 3 m away, for ~4 ms a frame instead of ~15."""
@@ -52,6 +57,18 @@ def every_kth(rows: ArrayT, n: int, frame_index: int) -> ArrayT:
     the same columns."""
     k = max(1, -(-len(rows) // max(1, n)))
     return rows[frame_index % k :: k]
+
+
+@dataclass(frozen=True)
+class PreparedFrame:
+    """What integrating a frame computes from the frame alone, before it touches the map: a reader thread may
+    compute it while the mapping thread integrates the frame before (`Mapper.prepare_ahead`)."""
+
+    frame: RgbdFrame
+    rays: FrameRays  # its valid pixels, for training
+    points: np.ndarray  # (P,3) float32 their world points
+    voxel_keys: np.ndarray  # (n,) int64 voxels to allocate (> min_points points, and expanded neighbours)
+    hit_keys: np.ndarray  # (m,) int64 every voxel a point falls in
 
 
 class Mapper:
@@ -98,6 +115,8 @@ class Mapper:
         live steps sample (it and its keyframes)."""
         self._live_timer = StageTimer()  # stage seconds of live and refinement steps
         self.on_iteration: Callable[[], None] | None = None
+        self._ahead: OrderedDict[int, PreparedFrame] = OrderedDict()  # frames prepared ahead, by index
+        self._ahead_lock = threading.Lock()
         """Called on the mapping thread after every optimisation step, where the field is consistent: the
         dashboard hands a waiting mesh update over there instead of at the end of the frame."""
 
@@ -141,6 +160,31 @@ class Mapper:
         self._live = (frame.index, rays, alloc.observed, None)  # keyframes selected at its first step
         self._finish_frame(frame, alloc)
         return self._frame_stats(frame, start, 0, {}, timer)
+
+    def prepare(self, frame: RgbdFrame) -> PreparedFrame:
+        """The part of integrating `frame` that depends on it alone: rays, world points, voxels to allocate."""
+        rays, points = FrameRays.with_points(frame, self.backend)  # valid depth -> rays, world points (P,3)
+        keys, hit_keys = self.octree.candidate_voxels(points)  # voxels with > min_points points (+ neighbours)
+        return PreparedFrame(frame, rays, points, keys, hit_keys)
+
+    def prepare_ahead(self, frame: RgbdFrame) -> None:
+        """(a reader thread) `prepare` the frame now, for `add_frame` to take (the newest `AHEAD_KEPT` are kept),
+        so that the mapping thread integrates it ~25 % faster while a core is free. The calling thread runs its
+        kernels on one core from then on (`Backend.serial_thread`): it is not the mapping thread."""
+        if not getattr(_READER, "serial", False):
+            self.backend.serial_thread()
+            _READER.serial = True
+        prepared = self.prepare(frame)
+        with self._ahead_lock:
+            self._ahead[frame.index] = prepared
+            while len(self._ahead) > AHEAD_KEPT:  # frames dropped from the backlog are never taken
+                self._ahead.popitem(last=False)
+
+    def _prepared(self, frame: RgbdFrame) -> PreparedFrame:
+        """The frame prepared ahead, else prepared now."""
+        with self._ahead_lock:
+            ahead = self._ahead.pop(frame.index, None)
+        return ahead if ahead is not None and ahead.frame is frame else self.prepare(frame)
 
     def warm_up(self) -> float:
         """Load the compiled kernels this map's configuration runs (see `warmup`), before a live stream starts;
@@ -195,8 +239,9 @@ class Mapper:
     ) -> tuple[FrameRays, Allocation]:
         """What a frame adds to the map before any optimisation; inserts it as a keyframe when the rule says so."""
         with timer("allocation"):
-            rays, points = FrameRays.with_points(frame, self.backend)  # valid depth -> rays, world points (P,3)
-            alloc = self.octree.allocate(points)  # voxels with > 10 points (+ expanded neighbours)
+            prepared = self._prepared(frame)  # rays, world points (P,3) and the voxels they fill
+            rays, points = prepared.rays, prepared.points
+            alloc = self.octree.allocate_candidates(prepared.voxel_keys, prepared.hit_keys)
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
             self._init_priors(frame)  # project new corners into the depth image
             self._add_colors(points, rays, color_points, frame.index)  # the colour prior averages pixel colours

@@ -9,6 +9,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -42,9 +43,18 @@ class FrameFeed:
     resumed run mapped them; a frame's index is its position in the source), but count as read."""
 
     def __init__(
-        self, source: FrameSource, settings: WorkerSettings, max_frames: int, backlog: int = 30, start_after: int = -1
+        self,
+        source: FrameSource,
+        settings: WorkerSettings,
+        max_frames: int,
+        backlog: int = 30,
+        start_after: int = -1,
+        prepare: Callable[[RgbdFrame], None] | None = None,
     ) -> None:
+        """`prepare(frame)`: called on the reader thread for each frame that arrives in real-time mode, before it
+        is queued (`Mapper.prepare_ahead`: the mapping thread then integrates it faster)."""
         self._source, self._settings, self._max_frames = source, settings, max_frames
+        self._prepare = prepare
         self._backlog = max(1, int(backlog))
         self._items = list(enumerate(source.keys()))  # (position, key) before stride
         self._cond = threading.Condition()
@@ -155,6 +165,11 @@ class FrameFeed:
         if clock is None:
             clock = (time.monotonic(), frame.timestamp)
         self._stop.wait(max(0.0, clock[0] + (frame.timestamp - clock[1]) - time.monotonic()))
+        if self._prepare is not None:  # the frame has arrived: its preparation overlaps the frames before it
+            try:
+                self._prepare(frame)
+            except Exception:  # integrating it reports the problem with the frame's name
+                log.debug("preparing frame %d ahead failed", frame.index, exc_info=True)
         with self._cond:
             while len(self._frames) >= self._backlog and self._frames[0] is not END:
                 self._frames.popleft()  # integration fell a whole backlog behind the stream

@@ -271,7 +271,10 @@ class MappingWorker(CommandServing):
     def _open_feed(self, start_after: int) -> FrameFeed:
         """A frame feed over the source that passes over the positions up to `start_after` (a resumed run's)."""
         cfg = self.cfg
-        return FrameFeed(self.source, self.settings, cfg.source.max_frames, cfg.anytime.backlog_frames, start_after)
+        prepare = getattr(self.mapper, "prepare_ahead", None)  # real-time frames prepared on the reader thread
+        return FrameFeed(
+            self.source, self.settings, cfg.source.max_frames, cfg.anytime.backlog_frames, start_after, prepare
+        )
 
     def _end_stream(self) -> None:
         self._finished = True

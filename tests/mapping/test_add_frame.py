@@ -4,10 +4,13 @@ refinement steps then optimise what was integrated."""
 
 from __future__ import annotations
 
+import threading
+from dataclasses import replace
+
 import numpy as np
 import torch
 
-from h2viz.mapping.mapper import Mapper
+from h2viz.mapping.mapper import AHEAD_KEPT, Mapper
 from h2viz.mapping.sampling.rays import FrameRays
 from h2viz.types import RgbdFrame
 from tests.mapping.analytic import Scene, orbit
@@ -61,6 +64,47 @@ def test_add_frame_keeps_every_frames_plane_within_millimetres_without_a_step() 
     assert torch.equal(twin.field.color_prior.sums, mapper.field.color_prior.sums)
     err = mesh_error(mapper, scene)
     assert np.median(err) < 0.002 and np.percentile(err, 95) < 0.006
+
+
+def same_map(a: Mapper, b: Mapper) -> bool:
+    """The two maps hold the same voxels, corner priors, fine lattices, colour lattices and keyframes."""
+    return (
+        np.array_equal(a.octree.voxels.keys, b.octree.voxels.keys)
+        and torch.equal(a.field.priors, b.field.priors)
+        and torch.equal(a.field.fine_prior.state, b.field.fine_prior.state)
+        and torch.equal(a.field.color_prior.sums, b.field.color_prior.sums)
+        and [k.index for k in a.keyframe_infos()] == [k.index for k in b.keyframe_infos()]
+    )
+
+
+def test_frames_prepared_ahead_on_a_reader_thread_integrate_exactly_as_frames_prepared_inline() -> None:
+    _, frames = room_views(6)
+    ahead, inline = Mapper(small_cfg(min_points_per_voxel=2)), Mapper(small_cfg(min_points_per_voxel=2))
+    for frame in frames:
+        reader = threading.Thread(target=ahead.prepare_ahead, args=(frame,), name="h2viz-frames")
+        reader.start()
+        reader.join()
+        assert frame.index in ahead._ahead  # waiting for add_frame
+        ahead.add_frame(frame, color_points=500, observed_points=500)
+        inline.add_frame(frame, color_points=500, observed_points=500)
+        assert not ahead._ahead  # taken
+    assert same_map(ahead, inline) and ahead.octree.n_voxels > 50
+
+
+def test_a_frame_prepared_ahead_is_used_only_for_that_frame_and_unclaimed_ones_are_let_go() -> None:
+    _, frames = room_views(3)
+    mapper, twin = Mapper(small_cfg(min_points_per_voxel=2)), Mapper(small_cfg(min_points_per_voxel=2))
+    impostor = replace(frames[1], index=frames[0].index)  # another frame with the same index (a replaced source)
+    reader = threading.Thread(target=mapper.prepare_ahead, args=(impostor,))
+    reader.start()
+    reader.join()
+    mapper.add_frame(frames[0])
+    twin.add_frame(frames[0])
+    assert same_map(mapper, twin)  # frames[0] was prepared for itself, not taken from the impostor's
+    reader = threading.Thread(target=lambda: [mapper.prepare_ahead(replace(frames[2], index=i)) for i in range(40)])
+    reader.start()
+    reader.join()
+    assert len(mapper._ahead) == AHEAD_KEPT and min(mapper._ahead) == 40 - AHEAD_KEPT  # the newest kept
 
 
 def test_add_frame_keeps_a_box_rooms_walls_within_millimetres() -> None:

@@ -196,8 +196,12 @@ class VoxelOctree:
 
     def allocate(self, points_world: np.ndarray) -> Allocation:
         """Allocate voxels for one frame's back-projected points (N,3); corners are created with them."""
+        return self.allocate_candidates(*self.candidate_voxels(points_world))
+
+    def allocate_candidates(self, keys: np.ndarray, hit_keys: np.ndarray) -> Allocation:
+        """Allocate what `candidate_voxels` chose for a frame (which depends on the frame alone, so that any thread
+        may compute it ahead): voxel `keys` (n,) and their corners; `hit_keys` (m,) are every voxel hit."""
         n_before = self.n_voxels
-        keys, hit_keys = self.candidate_voxels(points_world)
         self.voxels.add(keys)
         new_ids = np.arange(n_before, self.n_voxels, dtype=np.int64)
         if new_ids.size:
