@@ -228,7 +228,9 @@ class SlowRoomSource(BoxRoomSource):
         return super().load(position, key)  # type: ignore[arg-type]
 
 
-def test_a_realtime_stream_starts_once_the_kernels_are_loaded(make_worker: Factory) -> None:
+def test_a_realtime_stream_starts_once_the_kernels_are_loaded_and_prepares_frames_as_they_arrive(
+    make_worker: Factory,
+) -> None:
     source, mapper = BoxRoomSource(n=8), FakeMapper()  # 30 Hz: the stream lasts 0.27 s
     mapper.warm_up_s = 0.6  # longer than the stream: frames read meanwhile would overflow the backlog
     worker = make_worker(source, mapper, cfg=anytime_cfg(backlog_frames=4), realtime=True)
@@ -236,9 +238,10 @@ def test_a_realtime_stream_starts_once_the_kernels_are_loaded(make_worker: Facto
     snap = worker.slot.get()[1]
     assert [s.index for s in snap.stats] == list(range(8)) and snap.dropped == 0
     assert mapper.events[0] == ("warm_up", -1) and [k for k, _ in mapper.events].count("warm_up") == 1
+    assert mapper.prepared_ahead == list(range(8))  # each on the reader thread as it arrived
     every_frame = FakeMapper()  # its first frame loads them as well as a warm-up would
     assert make_worker(BoxRoomSource(n=3), every_frame).wait_finished(20)
-    assert ("warm_up", -1) not in every_frame.events
+    assert ("warm_up", -1) not in every_frame.events and not every_frame.prepared_ahead
 
 
 def test_realtime_mode_passes_over_overdue_frames_without_reading_them(make_worker: Factory) -> None:

@@ -115,10 +115,10 @@ class Mapper:
         live steps sample (it and its keyframes)."""
         self._live_timer = StageTimer()  # stage seconds of live and refinement steps
         self.on_iteration: Callable[[], None] | None = None
-        self._ahead: OrderedDict[int, PreparedFrame] = OrderedDict()  # frames prepared ahead, by index
-        self._ahead_lock = threading.Lock()
         """Called on the mapping thread after every optimisation step, where the field is consistent: the
         dashboard hands a waiting mesh update over there instead of at the end of the frame."""
+        self._ahead: OrderedDict[int, PreparedFrame] = OrderedDict()  # frames prepared ahead, by index
+        self._ahead_lock = threading.Lock()
 
     def _make_optimiser(self) -> GrowingAdam:
         """Adam for the growing corner priors (ours) and for hash tables and decoders (torch's fused one:

@@ -271,9 +271,13 @@ class MappingWorker(CommandServing):
     def _open_feed(self, start_after: int) -> FrameFeed:
         """A frame feed over the source that passes over the positions up to `start_after` (a resumed run's)."""
         cfg = self.cfg
-        prepare = getattr(self.mapper, "prepare_ahead", None)  # real-time frames prepared on the reader thread
-        return FrameFeed(
-            self.source, self.settings, cfg.source.max_frames, cfg.anytime.backlog_frames, start_after, prepare
+        return FrameFeed(  # real-time frames are prepared on the reader thread as they arrive
+            self.source,
+            self.settings,
+            cfg.source.max_frames,
+            cfg.anytime.backlog_frames,
+            start_after,
+            self.mapper.prepare_ahead,
         )
 
     def _end_stream(self) -> None:

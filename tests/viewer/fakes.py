@@ -120,6 +120,10 @@ class FakeMapper:
         # ("warm_up", -1) / ("add", frame index) / ("live", frame) / ("refine", -1), in order
         self.events: list[tuple[str, int]] = []
         self.warm_up_s = 0.0  # seconds `warm_up` takes (loading kernels)
+        self.prepared_ahead: list[int] = []  # frames the reader thread prepared (real-time mode)
+
+    def prepare_ahead(self, frame: RgbdFrame) -> None:
+        self.prepared_ahead.append(frame.index)
 
     def warm_up(self) -> float:
         time.sleep(self.warm_up_s)
