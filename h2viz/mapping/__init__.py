@@ -8,7 +8,8 @@
 - `meshing/`: chunked marching cubes of the field, the mesh jobs that run beside mapping, observed cells;
 - `kernels/`: the compiled (numba) fast paths of those stages, each checked against its stage's reference code;
 - here: the `Mapper` (mapper.py), the `Backend` that picks each stage's kernels once (backend.py), the optimiser
-  (optim.py), real-time scheduling (anytime.py), checkpoints (checkpoint.py, checkpoint_format.py) and autosave.
+  (optim.py), real-time scheduling (anytime.py), checkpoints (checkpoint.py, checkpoint_format.py), autosave
+  and the kernel warm-up before a live stream (warmup.py).
 
 The public names below are imported on first use: anytime.py and autosave.py, which the dashboard's worker
 imports, stay free of torch.

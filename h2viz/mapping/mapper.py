@@ -16,6 +16,7 @@ import torch
 import trimesh
 
 from h2viz.config import MappingConfig
+from h2viz.mapping import warmup
 from h2viz.mapping.backend import Backend, resolve_backend
 from h2viz.mapping.field.color_views import ColorViews
 from h2viz.mapping.field.copy_pool import CopyPool
@@ -33,7 +34,6 @@ from h2viz.mapping.rendering.losses import check_color_settings, color_error, ma
 from h2viz.mapping.rendering.volume import composite, live_samples, render_weights
 from h2viz.mapping.sampling.rays import FrameRays, RayBatch, sample_frames
 from h2viz.mapping.sampling.samples import BandLayout, Samples, band_samples, sample_rays
-from h2viz.mapping.warmup import warm_up
 from h2viz.timing import StageTimer
 from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
 
@@ -189,7 +189,18 @@ class Mapper:
     def warm_up(self) -> float:
         """Load the compiled kernels this map's configuration runs (see `warmup`), before a live stream starts;
         the seconds it took (0 when they were loaded before). The map itself is not touched."""
-        return warm_up(self.cfg)
+        return warmup.once(repr(self.cfg), lambda: Mapper(self.cfg)._run_every_stage(warmup.scratch_frame()))
+
+    def _run_every_stage(self, frame: RgbdFrame) -> None:
+        """Integrate `frame` in both modes, take a live step, mesh the map whole and update that mesh."""
+        self.add_frame(frame)
+        self.live_step()
+        self.integrate(frame)  # every-frame mode: the same stages with its own steps
+        for whole in (True, False):  # a whole mesh, then a live update against it
+            self.touched[:] = True
+            job = self.mesh_job(0.03, whole=whole)
+            assert job is not None  # voxels were touched
+            job.run()
 
     def live_step(self) -> float:
         """One optimisation step on the newest frame `add_frame` integrated plus the K keyframes coverage selects

@@ -15,7 +15,6 @@ CHECK = """
 import sys
 import numba
 from numba.core.dispatcher import Dispatcher
-from h2viz.mapping import warmup
 from h2viz.mapping.mapper import Mapper
 from tests.mapping.test_mapper import room_views, small_cfg
 
@@ -29,8 +28,8 @@ def loaded():
     }
 
 cfg = small_cfg(max_iters=3)
-seconds = warmup.warm_up(cfg)
-assert seconds > 0.0 and warmup.warm_up(cfg) == 0.0, seconds
+seconds = Mapper(cfg).warm_up()
+assert seconds > 0.0 and Mapper(cfg).warm_up() == 0.0, seconds
 before = loaded()
 assert sum(before.values()) >= 10, before  # the kernels of every stage, loaded
 _, frames = room_views(4)
