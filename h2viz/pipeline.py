@@ -243,9 +243,7 @@ def _map_stream(
             recorder.after_frame(frame, s)
         last_index = frame.index
         bar.set_postfix(t=f"{s.map_time_s:.2f}s", it=s.iterations, vox=s.n_voxels, kf=s.n_keyframes)
-        failed = autosave.maybe_save(  # written in the background; a due one waits for the write in progress
-            mapper, mapper.frames_done, lambda: run_state(last_index, stats), background=True  # noqa: B023 - now
-        )
+        failed = autosave.maybe_save(mapper, mapper.frames_done, lambda: run_state(last_index, stats))  # noqa: B023 - called now
         if failed is not None and failed not in errors:
             errors.append(failed)
     bar.close()

@@ -121,11 +121,10 @@ class Autosaver:
     passed since the last one. A failed write (disk full, folder gone) is logged and reported, never raised: the
     map stays in memory and the previous autosave stays valid.
 
-    While a live stream plays (`streaming`), autosaves come by time alone (every_frames counts frames at the pace
-    of every-frame mapping: at 30 Hz, 50 frames pass in under 2 s, less than a write takes) and are written in the
-    background: the mapping thread only takes the state (`prepare_checkpoint`), a thread writes it while frames
-    go on being integrated. The dashboard writes every-frame autosaves in the background too (`background`).
-    One write runs at a time; any other save waits for it first."""
+    Due autosaves (`maybe_save`) are written in the background: the mapping thread only takes the state
+    (`prepare_checkpoint`), a thread writes it while mapping goes on. While a live stream plays (`streaming`), they
+    come by time alone (every_frames counts frames at the pace of every-frame mapping: at 30 Hz, 50 frames pass in
+    under 2 s, less than a write takes). One write runs at a time; any other save waits for it first."""
 
     def __init__(
         self,
@@ -232,14 +231,13 @@ class Autosaver:
         frames_done: int,
         extra: Callable[[], dict[str, Any]],
         streaming: bool = False,
-        background: bool | None = None,
     ) -> str | None:
-        """`save` when one is due (`extra` is called only then); None, or the message of a failed write (a finished
-        background write's first). `streaming`: due by time alone, and none while a write is in progress (the
-        stream must not wait for it); `background` (default: `streaming`): written on a thread. Outside a stream
-        a due autosave waits for a write in progress, so autosaves come at the same frames either way."""
+        """`save` in the background when one is due (`extra` is called only then); None, or the message of a failed
+        write (a finished background write's first). `streaming`: due by time alone, and none while a write is in
+        progress (the stream must not wait for it). Outside a stream a due autosave waits for a write in progress,
+        so autosaves come at the same frames either way."""
         if not self.writing and self._unreported is not None:
             return self.wait()
         if not self.enabled or (streaming and self.writing) or not self.due(frames_done, streaming):
             return None
-        return self.save(mapper, frames_done, extra(), background=streaming if background is None else background)
+        return self.save(mapper, frames_done, extra(), background=True)

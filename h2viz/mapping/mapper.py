@@ -38,7 +38,6 @@ from h2viz.timing import StageTimer
 from h2viz.types import FrameStats, KeyframeInfo, MeshChunk, RgbdFrame
 
 AHEAD_KEPT = 32  # frames prepared ahead that wait for add_frame, at most (a full 30-frame backlog: ~220 MB)
-_READER = threading.local()  # .serial: this thread prepares frames ahead (its kernels on one core)
 OBSERVED_POINTS = 60_000
 """Depth points a frame marks observed cells with (every k-th valid one): a fifth of a 640x480 frame, which at
 70 deg stays about as dense as the 1.25 cm cells up to 3 m away, for ~4 ms a frame instead of ~15."""
@@ -171,9 +170,7 @@ class Mapper:
         """(a reader thread) `prepare` the frame now, for `add_frame` to take (the newest `AHEAD_KEPT` are kept),
         so that the mapping thread integrates it ~25 % faster while a core is free. The calling thread runs its
         kernels on one core from then on (`Backend.serial_thread`): it is not the mapping thread."""
-        if not getattr(_READER, "serial", False):
-            self.backend.serial_thread()
-            _READER.serial = True
+        self.backend.serial_thread()  # a thread-local setting: cheap to repeat
         prepared = self.prepare(frame)
         with self._ahead_lock:
             self._ahead[frame.index] = prepared

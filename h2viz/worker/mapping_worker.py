@@ -389,9 +389,7 @@ class MappingWorker(CommandServing):
             self._submit_mesh(REFRESH_S)  # not while a job runs: freezing the field costs ~15 ms a frame
         self._resolve_steps(stats)
         if self._autosave is not None:
-            failed = self._autosave.maybe_save(
-                self.mapper, self._n_mapped, self._autosave_extra, streaming=anytime, background=True
-            )
+            failed = self._autosave.maybe_save(self.mapper, self._n_mapped, self._autosave_extra, streaming=anytime)
             if failed is not None:
                 self._errors.append(failed)
         self._publish()

@@ -48,11 +48,6 @@ class CopyPool:
         with self._lock:
             return sum(t.numel() * t.element_size() for t in self._free)
 
-    def clear(self) -> None:
-        """Let go of the storages kept for reuse (a map replaced by another)."""
-        with self._lock:
-            self._free.clear()
-
     def _take(self, src: torch.Tensor) -> torch.Tensor | None:
         """The smallest free storage that holds `src` (same dtype and device), removed from the pool."""
         with self._lock:
