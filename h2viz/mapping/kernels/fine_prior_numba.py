@@ -17,10 +17,11 @@ def _fuse_kernel(
     """state (V*(sub+1)^3, 2) += (truncated SDF in tr units, 1) at every lattice point of voxels with origins
     (V,3) that projects onto valid depth and lies at most tr behind it.
 
-    Voxels whose bounding sphere leaves the image are skipped whole, and the threads then share the voxels in
-    view (allocated together, they would otherwise fall to one thread); each voxel's lattice is written by one
-    thread. A lattice point's camera coordinates are its row's start plus k steps along the lattice's z axis (no
-    matrix product per point), and one division per point projects it."""
+    Voxels whose bounding sphere projects wholly off the image are skipped (the bound holds off the optical axis
+    too, where a sphere's image is stretched), and the threads then share the voxels in view (allocated together,
+    they would otherwise fall to one thread); each voxel's lattice is written by one thread. A lattice point's
+    camera coordinates are its row's start plus k steps along the lattice's z axis (no matrix product per point),
+    and one division per point projects it."""
     n = sub + 1
     h, w = depth.shape
     cell = vs / sub
@@ -37,8 +38,10 @@ def _fuse_kernel(
             xc = R[0, 0] * hx + R[0, 1] * hy + R[0, 2] * hz + t[0]
             yc = R[1, 0] * hx + R[1, 1] * hy + R[1, 2] * hz + t[1]
             uc, vc = fx * xc / zc + cx, fy * yc / zc + cy
-            r_px = max(fx, fy) * radius / (zc - radius)
-            if uc < -r_px or uc > w + r_px or vc < -r_px or vc > h + r_px:
+            # |u - uc| <= fx r sqrt(zc^2 + xc^2) / ((zc - r) zc) within r of the centre, +1 px for rounding
+            ru = fx * radius * np.sqrt(zc * zc + xc * xc) / ((zc - radius) * zc) + 1.0
+            rv = fy * radius * np.sqrt(zc * zc + yc * yc) / ((zc - radius) * zc) + 1.0
+            if uc < -ru or uc > w + ru or vc < -rv or vc > h + rv:
                 continue
         in_view[v] = True
     visible = np.nonzero(in_view)[0]

@@ -29,15 +29,12 @@ from typing import Any
 import numba
 import numpy as np
 import torch
-from llvmlite import ir
-from numba.core import cgutils, types
-from numba.extending import intrinsic
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from h2viz.errors import H2vizError
 from h2viz.mapping.field.encoding import HASH_PRIMES
-from h2viz.mapping.kernels.jit import njit, parallel_region
+from h2viz.mapping.kernels.jit import njit, parallel_region, prefetch
 
 P_Y, P_Z = HASH_PRIMES[1], HASH_PRIMES[2]  # the x multiplier is 1
 PREFETCH_AHEAD = 8
@@ -62,31 +59,12 @@ def _corners(x0: float, x1: float, x2: float, cell: float, mask: int) -> tuple[A
     return rows, weights
 
 
-@intrinsic
-def _prefetch(typingctx: Any, table: Any, row: Any) -> Any:
-    """Ask the CPU to start loading the cache line of table[row, 0] (a hint: results do not change)."""
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        table_type = signature.args[0]
-        array = context.make_array(table_type)(context, builder, args[0])
-        index = [args[1], context.get_constant(types.intp, 0)]
-        item = cgutils.get_item_pointer(context, builder, table_type, array, index, wraparound=False)
-        address = builder.bitcast(item, cgutils.voidptr_t)
-        i32 = ir.IntType(32)
-        signature_ir = ir.FunctionType(ir.VoidType(), [address.type, i32, i32, i32])
-        prefetch = builder.module.declare_intrinsic("llvm.prefetch", [address.type], signature_ir)
-        builder.call(prefetch, [address, i32(0), i32(3), i32(1)])  # read, keep in all cache levels, data
-        return context.get_dummy_value()
-
-    return types.void(table, row), codegen
-
-
 @njit
 def _prefetch_corners(x: np.ndarray, p: int, table: np.ndarray, cell: float, mask: int) -> None:
     """Prefetch the 8 table rows (T,F) of point p's cell."""
     rows, _ = _corners(x[p, 0], x[p, 1], x[p, 2], cell, mask)
     for c in range(8):
-        _prefetch(table, rows[c])
+        prefetch(table, rows[c])
 
 
 @njit

@@ -2,7 +2,7 @@
 and `parallel_region`, under which every parallel kernel of the package is entered.
 
 numba's cache only notices edits to the file a cached function is defined in: helpers that a kernel inlines
-should live in the kernel's own module.
+should live in the kernel's own module (`prefetch`, a fixed hint that never changes a result, is the exception).
 """
 
 from __future__ import annotations
@@ -14,6 +14,9 @@ from typing import Any
 
 import numba
 import torch
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 _PARALLEL = threading.Lock()
 _LOCAL = threading.local()  # .serial: this thread runs every kernel on one thread (see `serial_kernels`)
@@ -43,6 +46,27 @@ def njit(
             return numba.njit(cache=False, **opts)(f)
 
     return wrap(fn) if fn is not None else wrap
+
+
+@intrinsic
+def prefetch(typingctx: Any, array: Any, row: Any) -> Any:
+    """(in a kernel) Ask the CPU to start loading the cache line of array[row, 0] of a 2-D array: a hint, results
+    do not change. Scattered reads and writes (hash tables, lattices) issued a few items ahead overlap their cache
+    misses instead of waiting for each in turn."""
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        array_type = signature.args[0]
+        data = context.make_array(array_type)(context, builder, args[0])
+        index = [args[1], context.get_constant(types.intp, 0)]
+        item = cgutils.get_item_pointer(context, builder, array_type, data, index, wraparound=False)
+        address = builder.bitcast(item, cgutils.voidptr_t)
+        i32 = ir.IntType(32)
+        signature_ir = ir.FunctionType(ir.VoidType(), [address.type, i32, i32, i32])
+        llvm_prefetch = builder.module.declare_intrinsic("llvm.prefetch", [address.type], signature_ir)
+        builder.call(llvm_prefetch, [address, i32(0), i32(3), i32(1)])  # read, keep in all cache levels, data
+        return context.get_dummy_value()
+
+    return types.void(array, row), codegen
 
 
 def serial_kernels() -> None:

@@ -76,6 +76,25 @@ def test_kernels_match_the_torch_reference(seed: int, sub: int) -> None:
     assert torch.allclose(a, b, atol=1e-4) and torch.allclose(wa, wb, atol=1e-4)
 
 
+def test_the_splat_kernel_gives_the_same_sums_on_any_number_of_threads() -> None:
+    """Threads share the voxels and each voxel's lattice takes its points in order: the sums of a serial splat,
+    bit for bit (prefetching lattice lines ahead changes nothing)."""
+    kernels = pytest.importorskip("h2viz.mapping.kernels.color_prior_numba")
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-0.3, 0.3, (20_000, 3)).astype(np.float32)
+    octree = _octree(pts)
+    rgb = rng.uniform(0, 1, (len(pts), 3)).astype(np.float32)
+    table = FAST.array_kernels.walk.voxel_hash(octree)  # type: ignore[union-attr]
+    origin = (octree.voxel_coords() * VS).astype(np.float32)
+    results = []
+    for parts in (1, 2, 3):
+        sums = np.zeros((octree.n_voxels * (SUB + 1) ** 3, 4), np.float32)
+        kernels._splat_kernel(pts, rgb, *table, origin, VS, SUB, sums, parts)
+        results.append(sums)
+    assert results[0].any()
+    assert all(np.array_equal(results[0], other) for other in results[1:])
+
+
 def test_storage_grows_without_losing_lattices() -> None:
     prior = ColorPrior(VS, sub=SUB)
     prior.grow(3)

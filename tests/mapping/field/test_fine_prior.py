@@ -106,6 +106,20 @@ def test_kernels_match_the_torch_reference(seed: int) -> None:
         assert torch.allclose(a, b, atol=1e-5)
 
 
+def test_voxels_at_the_image_border_far_off_axis_are_fused_like_the_reference() -> None:
+    """Near the camera and far off its axis a voxel's image is stretched beyond its centre's distance times the
+    radius over depth: culling by that circle skipped voxels whose corners still project into the image."""
+    wide = np.array([[60.0, 0.0, 80.0], [0.0, 60.0, 60.0], [0.0, 0.0, 1.0]])  # ~106 x 90 degrees
+    origins = _voxels(range(-15, 15), range(-10, 10), range(1, 8))  # 0.1-0.8 m deep, out to 1.5 m aside
+    fused, reference = _prior(origins, fused=True), _prior(origins, fused=False)
+    depth = np.full((120, 160), 1.0, np.float32)  # every voxel in front of it: free space, fused
+    fused.fuse(origins, depth, wide, np.eye(4))
+    reference.fuse(origins, depth, wide, np.eye(4))
+    assert reference.state[..., 1].sum() > 1000
+    assert torch.equal(fused.state[..., 1] > 0, reference.state[..., 1] > 0)
+    assert torch.allclose(fused.state, reference.state, atol=1e-5)
+
+
 def test_storage_grows_without_losing_lattices_and_loads_back() -> None:
     origins = _voxels(range(0, 2), range(0, 2), range(9, 10))
     prior = _prior(origins)
