@@ -7,10 +7,11 @@ from __future__ import annotations
 import threading
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import torch
 
-from h2viz.mapping.mapper import AHEAD_KEPT, Mapper
+from h2viz.mapping.mapper import AHEAD_KEPT, THUMBNAIL_HEIGHT, Mapper, keyframe_thumbnail
 from h2viz.mapping.sampling.rays import FrameRays
 from h2viz.types import RgbdFrame
 from tests.mapping.analytic import Scene, orbit
@@ -67,13 +68,20 @@ def test_add_frame_keeps_every_frames_plane_within_millimetres_without_a_step() 
 
 
 def same_map(a: Mapper, b: Mapper) -> bool:
-    """The two maps hold the same voxels, corner priors, fine lattices, colour lattices and keyframes."""
+    """The two maps hold the same voxels, corner priors, fine lattices, colour lattices, keyframes (with their
+    thumbnails) and stored colour views."""
     return (
         np.array_equal(a.octree.voxels.keys, b.octree.voxels.keys)
         and torch.equal(a.field.priors, b.field.priors)
         and torch.equal(a.field.fine_prior.state, b.field.fine_prior.state)
         and torch.equal(a.field.color_prior.sums, b.field.color_prior.sums)
         and [k.index for k in a.keyframe_infos()] == [k.index for k in b.keyframe_infos()]
+        and all(np.array_equal(x, y) for x, y in zip(a.thumbnails, b.thumbnails, strict=True))
+        and [v.index for v in a.color_views.views] == [v.index for v in b.color_views.views]
+        and all(
+            np.array_equal(x.rgb_half, y.rgb_half) and np.array_equal(x.depth_half, y.depth_half)
+            for x, y in zip(a.color_views.views, b.color_views.views, strict=True)
+        )
     )
 
 
@@ -105,6 +113,21 @@ def test_a_frame_prepared_ahead_is_used_only_for_that_frame_and_unclaimed_ones_a
     reader.start()
     reader.join()
     assert len(mapper._ahead) == AHEAD_KEPT and min(mapper._ahead) == 40 - AHEAD_KEPT  # the newest kept
+
+
+def test_keyframe_thumbnails_keep_the_aspect_and_match_one_area_resize() -> None:
+    """Halving first (exact 2x2 averages) then area-resizing gives the picture one area resize would, to a few
+    levels, at any size (a frame smaller than twice the thumbnail is resized once)."""
+    for h, w in ((480, 640), (968, 1296), (120, 160), (50, 60)):
+        yy, xx = np.mgrid[0:h, 0:w]
+        rgb = np.stack([255 * xx / w, 255 * yy / h, 127 + 100 * np.sin(xx / 9.0) * np.cos(yy / 13.0)], -1)
+        rgb = rgb.astype(np.uint8)
+        thumb = keyframe_thumbnail(rgb)
+        width = round(w * THUMBNAIL_HEIGHT / h)
+        assert thumb.shape == (THUMBNAIL_HEIGHT, width, 3) and thumb.dtype == np.uint8
+        once = cv2.resize(rgb, (width, THUMBNAIL_HEIGHT), interpolation=cv2.INTER_AREA)
+        diff = np.abs(thumb.astype(int) - once.astype(int))
+        assert diff.mean() < 2.5 and diff.max() <= 16
 
 
 def test_add_frame_keeps_a_box_rooms_walls_within_millimetres() -> None:

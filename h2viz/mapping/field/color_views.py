@@ -152,15 +152,22 @@ class ColorViews:
     def nbytes(self) -> int:
         return sum(v.nbytes for v in self.views)
 
-    def add(self, frame: RgbdFrame) -> None:
+    @staticmethod
+    def view_of(frame: RgbdFrame) -> StoredView:
+        """`frame` as the store keeps it (its half-resolution colour and depth: ~1.5 ms; `add` takes it made)."""
+        T = np.asarray(frame.T_world_camera, np.float64)
+        return StoredView.of(frame.index, T, frame.K, frame.rgb, frame.depth_m)
+
+    def add(self, frame: RgbdFrame, view: StoredView | None = None) -> None:
         """Keep `frame`'s colour (unless a stored view is within MIN_SPACING of its camera), then retire the most
-        redundant views (those nearest another) until the store fits its budget."""
+        redundant views (those nearest another) until the store fits its budget. `view`: `view_of(frame)`, made
+        ahead (on a reader thread)."""
         if not self.enabled:
             return
         T = np.asarray(frame.T_world_camera, np.float64)
         if self.views and float(view_distances(_poses(self.views), T).min()) < MIN_SPACING:
             return
-        self.replace((*self.views, StoredView.of(frame.index, T, frame.K, frame.rgb, frame.depth_m)))
+        self.replace((*self.views, view if view is not None else self.view_of(frame)))
 
     def replace(self, views: tuple[StoredView, ...]) -> None:
         """Store `views`, retiring the most redundant ones past the budget (a checkpoint's, or after `add`)."""
