@@ -103,7 +103,7 @@ class FinePrior:
             own_side, their_side = (n - 1, 0) if positive else (0, n - 1)
             index: list[slice | int] = [slice(None)] * 3
             index[axis] = their_side
-            shared = lattice[theirs][(slice(None), *index)]  # (m, n, n, 2)
+            shared = lattice[(theirs, *index)]  # (m, n, n, 2): the face alone, not the whole lattices
             index[axis] = own_side
             lattice[(mine, *index)] = shared
 
