@@ -45,10 +45,10 @@ from h2viz.eval.mesh_render import MeshRenderer  # noqa: E402
 from h2viz.eval.metrics import mesh_metrics, observed_mask_fn  # noqa: E402
 from h2viz.eval.report import EvalView, Renderer, load_mesh  # noqa: E402
 from h2viz.mapping.autosave import Autosaver  # noqa: E402
-from h2viz.mapping.mapper import Mapper  # noqa: E402
+from h2viz.mapping.mapper import INTEGRATION_STAGES, Mapper  # noqa: E402
 from h2viz.pipeline import EvalFrames  # noqa: E402
 from h2viz.sources.base import FrameSource, make_source  # noqa: E402
-from h2viz.types import RgbdFrame  # noqa: E402
+from h2viz.types import FrameStats, RgbdFrame  # noqa: E402
 from h2viz.worker.anytime_run import AnytimeRun  # noqa: E402
 from h2viz.worker.feed import END, FrameFeed, WorkerSettings  # noqa: E402
 
@@ -196,6 +196,7 @@ def run_anytime(
             r.note = "; ".join(filter(None, [r.note, f"{saver.saves} autosaves (autosave.*)"]))
         if not prepare_ahead:
             r.note = "; ".join(filter(None, [r.note, "frames prepared on the mapping thread"]))
+        r.note = "; ".join(filter(None, [r.note, stage_note(run.stats)]))
         return r
 
     rows = [row("end of stream")]
@@ -208,6 +209,15 @@ def run_anytime(
     if run.settled and "settled" not in rows[-1].scored:
         rows[-1].scored += f" (settled after {t.sharpen_s:.0f} s)"
     return rows
+
+
+def stage_note(stats: Sequence[FrameStats]) -> str:
+    """The median milliseconds of each part of integrating a frame (`INTEGRATION_STAGES`) over the frames."""
+    parts = [
+        f"{stage.replace('_', ' ')} {1000.0 * float(np.median([s.timings.get(stage, 0.0) for s in stats])):.1f}"
+        for stage in INTEGRATION_STAGES
+    ]
+    return f"integration by stage, median ms: {', '.join(parts)}" if stats else ""
 
 
 def warm_up(stream: Stream) -> None:

@@ -23,12 +23,12 @@ from h2viz.config import Config, load_config
 from h2viz.errors import H2vizError
 from h2viz.eval.report import Renderer, load_mesh
 from h2viz.mapping.backend import resolve_backend
-from h2viz.mapping.mapper import Mapper
+from h2viz.mapping.mapper import INTEGRATION_STAGES, Mapper
 from h2viz.pipeline import EvalFrames, evaluate
 from h2viz.sources.base import FrameSource, make_source
 from h2viz.types import FrameStats, RgbdFrame
 
-STAGES = ("allocation", "keyframes", "sampling", "forward", "backward", "optimiser")
+STAGES = (*INTEGRATION_STAGES, "sampling", "forward", "backward", "optimiser")
 """The stages `Mapper.integrate` times in `FrameStats.timings`."""
 
 

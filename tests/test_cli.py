@@ -11,6 +11,7 @@ import trimesh
 import yaml
 
 from h2viz.cli import main
+from h2viz.mapping.mapper import INTEGRATION_STAGES
 
 TINY = [
     "--set", "source.synthetic.width=96", "--set", "source.synthetic.height=72",
@@ -42,7 +43,7 @@ def test_map_writes_mesh_checkpoint_config_stats_and_metrics(run_dir: Path) -> N
         assert (
             f["map_time_s"] > 0 and 1 <= f["iterations"] <= 5 and f["n_voxels"] > 0 and f["n_keyframes"] >= 1
         )
-        stages = {"allocation", "keyframes", "sampling", "forward", "backward", "optimiser"}
+        stages = {*INTEGRATION_STAGES, "sampling", "forward", "backward", "optimiser"}
         assert set(f["timings"]) == stages and sum(f["timings"].values()) <= f["map_time_s"]
     metrics = json.loads((run_dir / "metrics.json").read_text())
     # six low-resolution frames with five iterations each: a coarse map, but a real one

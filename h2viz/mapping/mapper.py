@@ -50,6 +50,11 @@ pixels a 1.25 cm lattice cell up to 4 m away at 70 deg, for ~15 ms a frame inste
 ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
 
 
+INTEGRATION_STAGES = ("voxels", "corner_priors", "fine_prior", "color_prior", "color_views", "observed", "keyframes")
+"""The parts of integrating a frame that `FrameStats.timings` holds (seconds), in order: allocating its voxels (and
+growing the tables), projecting new corners' priors, fusing the fine SDF lattices, splatting the colour prior,
+storing its colour view, marking observed cells, and the keyframe decision."""
+
 THUMBNAIL_HEIGHT = 72
 """Keyframe thumbnails' height in pixels (the dashboard's keyframe frustums show them)."""
 
@@ -262,15 +267,19 @@ class Mapper:
         color_points: int = COLOR_POINTS,
         observed_points: int = OBSERVED_POINTS,
     ) -> tuple[FrameRays, Allocation]:
-        """What a frame adds to the map before any optimisation; inserts it as a keyframe when the rule says so."""
-        with timer("allocation"):
+        """What a frame adds to the map before any optimisation; inserts it as a keyframe when the rule says so.
+        The timer gets each part's seconds (INTEGRATION_STAGES)."""
+        with timer("voxels"):
             prepared = self._prepared(frame)  # rays, world points (P,3) and the voxels they fill
             rays, points = prepared.rays, prepared.points
             alloc = self.octree.allocate_candidates(prepared.voxel_keys, prepared.hit_keys)
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
-            self._init_priors(frame)  # project new corners into the depth image
-            self._add_colors(points, rays, color_points, frame.index)  # the colour prior averages pixel colours
+        self._init_priors(frame, timer)  # project new corners and the fine lattices into the depth image
+        with timer("color_prior"):
+            self._add_colors(points, rays, color_points, frame.index)  # averages of pixel colours
+        with timer("color_views"):
             self.color_views.add(frame, prepared.view)  # renders take colour from the nearest stored views
+        with timer("observed"):
             self.observed.add(self.octree, every_kth(points, observed_points, frame.index))  # meshing
         with timer("keyframes"):
             if self.keyframes.should_insert(frame.index, alloc.observed):  # IoU / max-gap rule
@@ -317,12 +326,14 @@ class Mapper:
         self.field.add_colors(torch.from_numpy(every_kth(points, color_points, frame_index)).to(self.device), rgb)
 
     @torch.no_grad()
-    def _init_priors(self, frame: RgbdFrame) -> None:
-        cids, vals = self.priors.initialize(self.octree, frame.depth_m, frame.K, frame.T_world_camera)
-        if cids.size:
-            self.field.priors[torch.from_numpy(cids).to(self.device)] = torch.from_numpy(vals).to(self.device)
+    def _init_priors(self, frame: RgbdFrame, timer: StageTimer) -> None:
+        with timer("corner_priors"):
+            cids, vals = self.priors.initialize(self.octree, frame.depth_m, frame.K, frame.T_world_camera)
+            if cids.size:
+                self.field.priors[torch.from_numpy(cids).to(self.device)] = torch.from_numpy(vals).to(self.device)
         if self.field.fine_prior is not None:
-            self.field.fine_prior.fuse(self.field.voxel_origin, frame.depth_m, frame.K, frame.T_world_camera)
+            with timer("fine_prior"):
+                self.field.fine_prior.fuse(self.field.voxel_origin, frame.depth_m, frame.K, frame.T_world_camera)
 
     def _add_keyframe(self, frame: RgbdFrame, rays: FrameRays, observed: np.ndarray, thumbnail: np.ndarray) -> None:
         self.keyframes.insert(frame.index, observed)

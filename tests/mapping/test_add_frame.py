@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import torch
 
-from h2viz.mapping.mapper import AHEAD_KEPT, THUMBNAIL_HEIGHT, Mapper, keyframe_thumbnail
+from h2viz.mapping.mapper import AHEAD_KEPT, INTEGRATION_STAGES, THUMBNAIL_HEIGHT, Mapper, keyframe_thumbnail
 from h2viz.mapping.sampling.rays import FrameRays
 from h2viz.types import RgbdFrame
 from tests.mapping.analytic import Scene, orbit
@@ -113,6 +113,17 @@ def test_a_frame_prepared_ahead_is_used_only_for_that_frame_and_unclaimed_ones_a
     reader.start()
     reader.join()
     assert len(mapper._ahead) == AHEAD_KEPT and min(mapper._ahead) == 40 - AHEAD_KEPT  # the newest kept
+
+
+def test_add_frame_times_each_part_of_integration_without_counting_any_twice() -> None:
+    _, frames = room_views(2)
+    mapper = Mapper(small_cfg(min_points_per_voxel=2))
+    for frame in frames:
+        stats = mapper.add_frame(frame)
+        assert set(stats.timings) == set(INTEGRATION_STAGES) and stats.iterations == 0
+        assert all(s >= 0.0 for s in stats.timings.values())
+        assert 0.0 < sum(stats.timings.values()) <= stats.map_time_s
+        assert stats.timings["fine_prior"] > 0.0 and stats.timings["voxels"] > 0.0
 
 
 def test_keyframe_thumbnails_keep_the_aspect_and_match_one_area_resize() -> None:
