@@ -50,10 +50,13 @@ pixels a 1.25 cm lattice cell up to 4 m away at 70 deg, for ~15 ms a frame inste
 ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
 
 
-INTEGRATION_STAGES = ("voxels", "corner_priors", "fine_prior", "color_prior", "color_views", "observed", "keyframes")
-"""The parts of integrating a frame that `FrameStats.timings` holds (seconds), in order: allocating its voxels (and
-growing the tables), projecting new corners' priors, fusing the fine SDF lattices, splatting the colour prior,
-storing its colour view, marking observed cells, and the keyframe decision."""
+INTEGRATION_STAGES = (
+    "prepare", "voxels", "corner_priors", "fine_prior", "color_prior", "color_views", "observed", "keyframes",
+)  # fmt: skip
+"""The parts of integrating a frame that `FrameStats.timings` holds (seconds), in order: preparing it (`Mapper.prepare`;
+~0 when a reader thread prepared it ahead), allocating its voxels (and growing the tables), projecting new corners'
+priors, fusing the fine SDF lattices (with a fine prior), splatting the colour prior, storing its colour view,
+marking observed cells, and the keyframe decision."""
 
 THUMBNAIL_HEIGHT = 72
 """Keyframe thumbnails' height in pixels (the dashboard's keyframe frustums show them)."""
@@ -87,7 +90,7 @@ class PreparedFrame:
     points: np.ndarray  # (P,3) float32 their world points
     voxel_keys: np.ndarray  # (n,) int64 voxels to allocate (> min_points points, and expanded neighbours)
     hit_keys: np.ndarray  # (m,) int64 every voxel a point falls in
-    thumbnail: np.ndarray  # (72,w,3) uint8 its picture, should it become a keyframe
+    thumbnail: np.ndarray  # (THUMBNAIL_HEIGHT,w,3) uint8 its picture, should it become a keyframe
     view: StoredView | None  # its colour as the view store keeps it (None: no store)
 
 
@@ -182,7 +185,8 @@ class Mapper:
         return self._frame_stats(frame, start, 0, {}, timer)
 
     def prepare(self, frame: RgbdFrame) -> PreparedFrame:
-        """The part of integrating `frame` that depends on it alone: rays, world points, voxels to allocate."""
+        """The part of integrating `frame` that depends on it alone: rays, world points, voxels to allocate, its
+        keyframe thumbnail and the view the colour store would keep."""
         rays, points = FrameRays.with_points(frame, self.backend)  # valid depth -> rays, world points (P,3)
         keys, hit_keys = self.octree.candidate_voxels(points)  # voxels with > min_points points (+ neighbours)
         view = self.color_views.view_of(frame) if self.color_views.enabled else None
@@ -269,9 +273,10 @@ class Mapper:
     ) -> tuple[FrameRays, Allocation]:
         """What a frame adds to the map before any optimisation; inserts it as a keyframe when the rule says so.
         The timer gets each part's seconds (INTEGRATION_STAGES)."""
-        with timer("voxels"):
+        with timer("prepare"):
             prepared = self._prepared(frame)  # rays, world points (P,3) and the voxels they fill
             rays, points = prepared.rays, prepared.points
+        with timer("voxels"):
             alloc = self.octree.allocate_candidates(prepared.voxel_keys, prepared.hit_keys)
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
         self._init_priors(frame, timer)  # project new corners and the fine lattices into the depth image

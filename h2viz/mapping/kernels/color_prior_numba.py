@@ -53,7 +53,8 @@ def _voxel(p: np.ndarray, vs: float, keys: np.ndarray, ids: np.ndarray, tolerant
 
 SPLAT_AHEAD = 8
 """Points between the one being splatted and the one whose lattice lines are prefetched: a frame's points land
-on ~110k distinct lattice cells of a few hundred MB of lattices, each cell a cache miss (160k points: 18 -> 7 ms)."""
+on ~110k distinct lattice cells of a few hundred MB of lattices, each cell a cache miss (two threads: 40k points
+6.5 -> 4 ms, 160k 17 -> 13 ms)."""
 
 
 @njit(inline=True)
