@@ -196,6 +196,9 @@ def run_anytime(
             r.note = "; ".join(filter(None, [r.note, f"{saver.saves} autosaves (autosave.*)"]))
         if not prepare_ahead:
             r.note = "; ".join(filter(None, [r.note, "frames prepared on the mapping thread"]))
+        if t.thinned:
+            thinned = f"{t.thinned} frames fused into their new voxels' fine lattices only (anytime.fine_prior_stride)"
+            r.note = "; ".join(filter(None, [r.note, thinned]))
         r.note = "; ".join(filter(None, [r.note, stage_note(run.stats)]))
         return r
 

@@ -512,6 +512,12 @@ class AnytimeConfig:
     a frame less."""
     observed_points: int = 30_000
     """Depth points of each frame that mark observed cells for meshing (every-frame mode takes 60k)."""
+    fine_prior_stride: int = 2
+    """While other frames wait to be integrated, a frame fuses its depth into the fine SDF prior lattices of the
+    voxels it allocates only, and every fine_prior_stride-th frame into every lattice in view (1 = every frame
+    into every lattice, as every-frame mode). With no frame waiting every frame is fused whole. At 30 Hz
+    consecutive frames see nearly the same surfaces, and fine-prior fusion is about half of a frame's integration:
+    integration that falls behind catches up ~40 % faster."""
 
 
 @dataclass

@@ -51,7 +51,8 @@ class RunResult:
         if self.anytime is not None:
             a = self.anytime
             line = f"integrated {a.integrated} of {a.arrived} frames ({self.skipped} skipped, {a.dropped} dropped: "
-            line += f"{a.passed_over} read too late, {a.overflowed} beyond the backlog)"
+            line += f"{a.passed_over} read too late, {a.overflowed} beyond the backlog"
+            line += f"; {a.thinned} fused into their new voxels' fine lattices only while others waited)"
             line += f"; {a.stream_steps} steps during the stream, {a.sharpen_steps} after it ({a.sharpen_s:.1f} s)"
         if self.stats:
             times = np.array([s.map_time_s for s in self.stats])

@@ -99,8 +99,10 @@ def test_realtime_integrates_every_frame_and_reports_the_counts(tmp_path: Path, 
     assert realtime["passed_over"] == realtime["dropped"] < 15  # ...but rendering the scene may (counted)
     assert realtime["stream_steps"] > 0 and realtime["sharpen_steps"] > 0 and realtime["phase"] == "settled"
     assert sum(f["iterations"] for f in stats["frames"]) == realtime["stream_steps"]
+    assert 0 <= realtime["thinned"] <= realtime["integrated"]  # fused into their new voxels only (frames waited)
     text = capsys.readouterr().out
     assert f"integrated {len(mapped)} of 30 frames" in text and "after it" in text
+    assert f"{realtime['thinned']} fused into their new voxels' fine lattices only" in text
 
 
 def test_eval_prints_a_table_and_writes_metrics(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -50,6 +50,8 @@ def check_anytime(cfg: AnytimeConfig) -> None:
         raise ConfigError("anytime.plateau_window and anytime.plateau_patience must be >= 1")
     if cfg.plateau_tol < 0.0 or cfg.sharpen_max_s < 0.0:
         raise ConfigError("anytime.plateau_tol and anytime.sharpen_max_s must be >= 0")
+    if cfg.fine_prior_stride < 1:
+        raise ConfigError(f"anytime.fine_prior_stride must be >= 1, got {cfg.fine_prior_stride}")
 
 
 class AnytimeSchedule:
@@ -104,6 +106,28 @@ class AnytimeSchedule:
         self.step_s += seconds
         if self.owed_s > 0.0:  # a step that was owed: its overpayment is credit; free steps bank nothing
             self.owed_s -= seconds
+
+
+class FusionStride:
+    """Whether the frame integrated now fuses its depth into every fine lattice in view, or only into its new
+    voxels': every frame while no other frame waits, else every `stride`-th frame (the frames in between still
+    allocate voxels and fill the new ones' lattices, corner priors, colour prior and observed cells)."""
+
+    def __init__(self, stride: int) -> None:
+        if stride < 1:
+            raise ConfigError(f"anytime.fine_prior_stride must be >= 1, got {stride}")
+        self.stride = int(stride)
+        self._since_all = 0  # frames integrated since the last one fused whole
+        self.thinned = 0  # frames fused into their new voxels only
+
+    def fuse_all(self, waiting: int) -> bool:
+        """For the frame being integrated while `waiting` others wait."""
+        self._since_all += 1
+        if not waiting or self._since_all >= self.stride:
+            self._since_all = 0
+            return True
+        self.thinned += 1
+        return False
 
 
 @dataclass

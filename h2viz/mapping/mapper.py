@@ -171,15 +171,20 @@ class Mapper:
         return self._frame_stats(frame, start, iters, losses, timer)
 
     def add_frame(
-        self, frame: RgbdFrame, color_points: int = COLOR_POINTS, observed_points: int = OBSERVED_POINTS
+        self,
+        frame: RgbdFrame,
+        color_points: int = COLOR_POINTS,
+        observed_points: int = OBSERVED_POINTS,
+        fuse_all: bool = True,
     ) -> FrameStats:
         """Integrate one frame without optimising (real-time mode): rays, voxel allocation, SDF priors, colour
         prior (from up to `color_points` of its pixels), observed cells (up to `observed_points`) and the keyframe
         decision. Its geometry is in the map when this returns; `live_step` optimises it afterwards, as often as
-        time allows."""
+        time allows. `fuse_all=False` fuses its depth into the fine lattices of the voxels it allocates only (see
+        anytime.fine_prior_stride)."""
         start = time.perf_counter()
         timer = StageTimer()
-        rays, alloc = self._integrate_frame(frame, timer, color_points, observed_points)
+        rays, alloc = self._integrate_frame(frame, timer, color_points, observed_points, fuse_all)
         self._live = (frame.index, rays, alloc.observed, None)  # keyframes selected at its first step
         self._finish_frame(frame, alloc)
         return self._frame_stats(frame, start, 0, {}, timer)
@@ -270,6 +275,7 @@ class Mapper:
         timer: StageTimer,
         color_points: int = COLOR_POINTS,
         observed_points: int = OBSERVED_POINTS,
+        fuse_all: bool = True,
     ) -> tuple[FrameRays, Allocation]:
         """What a frame adds to the map before any optimisation; inserts it as a keyframe when the rule says so.
         The timer gets each part's seconds (INTEGRATION_STAGES)."""
@@ -279,7 +285,8 @@ class Mapper:
         with timer("voxels"):
             alloc = self.octree.allocate_candidates(prepared.voxel_keys, prepared.hit_keys)
             self._grow(alloc.new_voxels)  # corners, priors and tables follow the octree
-        self._init_priors(frame, timer)  # project new corners and the fine lattices into the depth image
+        # project new corners and the fine lattices (all in view, or the new voxels') into the depth image
+        self._init_priors(frame, timer, None if fuse_all else alloc.new_voxels)
         with timer("color_prior"):
             self._add_colors(points, rays, color_points, frame.index)  # averages of pixel colours
         with timer("color_views"):
@@ -331,14 +338,16 @@ class Mapper:
         self.field.add_colors(torch.from_numpy(every_kth(points, color_points, frame_index)).to(self.device), rgb)
 
     @torch.no_grad()
-    def _init_priors(self, frame: RgbdFrame, timer: StageTimer) -> None:
+    def _init_priors(self, frame: RgbdFrame, timer: StageTimer, fine_voxels: np.ndarray | None = None) -> None:
         with timer("corner_priors"):
             cids, vals = self.priors.initialize(self.octree, frame.depth_m, frame.K, frame.T_world_camera)
             if cids.size:
                 self.field.priors[torch.from_numpy(cids).to(self.device)] = torch.from_numpy(vals).to(self.device)
         if self.field.fine_prior is not None:
             with timer("fine_prior"):
-                self.field.fine_prior.fuse(self.field.voxel_origin, frame.depth_m, frame.K, frame.T_world_camera)
+                self.field.fine_prior.fuse(
+                    self.field.voxel_origin, frame.depth_m, frame.K, frame.T_world_camera, fine_voxels
+                )
 
     def _add_keyframe(self, frame: RgbdFrame, rays: FrameRays, observed: np.ndarray, thumbnail: np.ndarray) -> None:
         self.keyframes.insert(frame.index, observed)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 from h2viz.config import AnytimeConfig
-from h2viz.mapping.anytime import Action, AnytimeSchedule, Phase, check_anytime, plateau_from
+from h2viz.mapping.anytime import Action, AnytimeSchedule, FusionStride, Phase, check_anytime, plateau_from
 from h2viz.mapping.autosave import Autosaver, run_state
 from h2viz.types import FrameStats, RgbdFrame
 from h2viz.worker.feed import END, FrameFeed
@@ -32,6 +32,7 @@ class AnytimeTotals:
     dropped: int = 0  # passed_over + overflowed
     passed_over: int = 0  # due before the reader could read them (a slow source)
     overflowed: int = 0  # pushed out of a full backlog (integration fell behind)
+    thinned: int = 0  # integrated while others waited: fused into their new voxels' fine lattices only
     stream_steps: int = 0  # steps while the stream ran
     sharpen_steps: int = 0  # steps after it ended
     sharpen_s: float = 0.0
@@ -60,6 +61,7 @@ class AnytimeRun:
         self.mapper, self.feed, self.cfg, self.clock = mapper, feed, cfg, clock
         self.autosave, self.earlier = autosave, list(earlier or [])
         self.schedule = AnytimeSchedule(cfg.opt_share, cfg.catch_up_frames, cfg.backlog_frames)
+        self.fusion = FusionStride(cfg.fine_prior_stride)
         self.plateau = plateau_from(cfg)
         self.stats: list[FrameStats] = []
         self.totals = AnytimeTotals()
@@ -121,10 +123,12 @@ class AnytimeRun:
     def _integrate(self, frame: RgbdFrame) -> None:
         self._close_newest()
         t0 = self.clock()
-        stats = self.mapper.add_frame(frame, self.cfg.color_points, self.cfg.observed_points)
+        fuse_all = self.fusion.fuse_all(self.feed.frames_waiting())
+        stats = self.mapper.add_frame(frame, self.cfg.color_points, self.cfg.observed_points, fuse_all)
         self.schedule.did_integrate(self.clock() - t0)
         self.stats.append(stats)
         self.totals.integrated += 1
+        self.totals.thinned = self.fusion.thinned
         self._autosave()
 
     @property

@@ -105,6 +105,11 @@ class FrameFeed:
         with self._cond:
             return len(self._frames)
 
+    def frames_waiting(self) -> int:
+        """How many frames wait to be taken (the end of the stream not counted)."""
+        with self._cond:
+            return len(self._frames) - (1 if self._frames and self._frames[-1] is END else 0)
+
     def take(self, timeout_s: float) -> Any:
         """The next frame, END when the stream is over, or None when nothing arrived in time."""
         with self._cond:

@@ -25,7 +25,7 @@ import numpy as np
 
 from h2viz.config import Config
 from h2viz.errors import H2vizError
-from h2viz.mapping.anytime import Action, AnytimeSchedule, Phase, check_anytime, plateau_from
+from h2viz.mapping.anytime import Action, AnytimeSchedule, FusionStride, Phase, check_anytime, plateau_from
 from h2viz.mapping.autosave import Autosaver, ResumeOffer, run_state
 from h2viz.types import Command, FrameStats, MapSnapshot, RgbdFrame
 from h2viz.worker import requests
@@ -89,6 +89,7 @@ class MappingWorker(CommandServing):
         self._feed = self._open_feed(self._resume_after)
         self._schedule = AnytimeSchedule(cfg.anytime.opt_share, cfg.anytime.catch_up_frames, cfg.anytime.backlog_frames)
         self._plateau = plateau_from(cfg.anytime)
+        self._fusion = FusionStride(cfg.anytime.fine_prior_stride)  # while frames wait: every k-th fused whole
         self._phase = ""  # real-time mode: a Phase value ("" in every-frame mode)
         self._opt_steps = self._newest_steps = 0  # real-time steps in all, and on the newest frame
         self._sharpen_s = 0.0
@@ -361,7 +362,8 @@ class MappingWorker(CommandServing):
             if anytime:
                 self._close_newest()
                 a = self.cfg.anytime
-                stats = self.mapper.add_frame(frame, a.color_points, a.observed_points)
+                fuse_all = self._fusion.fuse_all(self._feed.frames_waiting())
+                stats = self.mapper.add_frame(frame, a.color_points, a.observed_points, fuse_all)
             else:
                 stats = self.mapper.integrate(frame)
         except Exception as e:

@@ -152,6 +152,32 @@ def test_add_frame_keeps_a_box_rooms_walls_within_millimetres() -> None:
     assert np.median(err) < 0.004 and np.percentile(err, 90) < 0.012
 
 
+def test_a_frame_fused_into_its_new_voxels_only_leaves_older_lattices_and_integrates_the_rest_whole() -> None:
+    """fuse_all=False (real-time mode while frames wait): the frame's depth reaches the fine lattices of the voxels
+    it allocates and no others; voxels, corner priors and the colour prior are what a whole frame puts there, and
+    the walls from the priors alone still lie within millimetres."""
+    scene, frames = room_views(12)
+    thin, whole = Mapper(small_cfg(min_points_per_voxel=2)), Mapper(small_cfg(min_points_per_voxel=2))
+    for i, frame in enumerate(frames):
+        older = thin.octree.n_voxels
+        before = thin.field.fine_prior.state.clone()
+        thin.add_frame(frame, color_points=500, observed_points=500, fuse_all=i % 2 == 0)
+        whole.add_frame(frame, color_points=500, observed_points=500)
+        lattices = thin.field.fine_prior.state
+        if i % 2:
+            assert torch.equal(lattices[:older], before)  # older voxels: untouched
+        else:
+            assert not torch.equal(lattices[:older], before) or older == 0
+        new = lattices[older:, :, 1]  # (new voxels, P): weights
+        assert new.shape[0] > 0 and (new.amax(1) > 0).float().mean() > 0.9  # nearly every new voxel fused
+        assert np.array_equal(thin.octree.voxels.keys, whole.octree.voxels.keys)
+        assert torch.equal(thin.field.priors, whole.field.priors)
+        assert torch.equal(thin.field.color_prior.sums, whole.field.color_prior.sums)
+    assert thin.field.fine_prior.state[..., 1].sum() < whole.field.fine_prior.state[..., 1].sum()
+    err = mesh_error(thin, scene)
+    assert np.median(err) < 0.004 and np.percentile(err, 90) < 0.012
+
+
 def test_live_steps_optimise_the_newest_frame_and_refinement_steps_the_keyframes() -> None:
     scene, frames = room_views(8)
     mapper = Mapper(small_cfg(min_points_per_voxel=2, fine_priors=False))  # the residual carries the geometry

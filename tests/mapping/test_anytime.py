@@ -15,7 +15,7 @@ import pytest
 
 from h2viz.config import AnytimeConfig, AutosaveConfig
 from h2viz.errors import ConfigError
-from h2viz.mapping.anytime import Action, AnytimeSchedule, Phase, Plateau, check_anytime
+from h2viz.mapping.anytime import Action, AnytimeSchedule, FusionStride, Phase, Plateau, check_anytime
 from h2viz.mapping.autosave import Autosaver
 from h2viz.types import FrameStats
 from h2viz.worker.anytime_run import AnytimeRun
@@ -167,6 +167,22 @@ def test_bad_settings_name_the_field() -> None:
         check_anytime(AnytimeConfig(opt_share=1.0))
     with pytest.raises(ConfigError, match="anytime.backlog_frames"):
         check_anytime(AnytimeConfig(backlog_frames=0))
+    with pytest.raises(ConfigError, match="anytime.fine_prior_stride"):
+        check_anytime(AnytimeConfig(fine_prior_stride=0))
+
+
+def test_frames_fuse_every_lattice_unless_others_wait_and_then_every_kth() -> None:
+    waiting = [0, 0, 3, 2, 5, 4, 3, 0, 1, 1, 1, 1, 0]
+    assert [FusionStride(1).fuse_all(w) for w in waiting] == [True] * len(waiting)
+    two = FusionStride(2)
+    assert [two.fuse_all(w) for w in waiting] == [
+        True, True, False, True, False, True, False, True, False, True, False, True, True,
+    ]  # fmt: skip
+    assert two.thinned == 5
+    three = FusionStride(3)
+    assert [three.fuse_all(w) for w in waiting] == [
+        True, True, False, False, True, False, False, True, False, False, True, False, True,
+    ]  # fmt: skip
 
 
 class ArrivedFeed:
@@ -183,6 +199,9 @@ class ArrivedFeed:
     def waiting(self) -> int:
         return len(self.items)
 
+    def frames_waiting(self) -> int:
+        return len(self.items) - (1 if self.items and self.items[-1] is END else 0)
+
     def take(self, timeout_s: float) -> object:
         return self.items.popleft() if self.items else None
 
@@ -190,7 +209,14 @@ class ArrivedFeed:
 class IntegratingMapper(CountingMapper):
     """What AnytimeRun.stream calls: frames integrated at once and live steps."""
 
-    def add_frame(self, frame: SimpleNamespace, color_points: int, observed_points: int) -> FrameStats:
+    def __init__(self) -> None:
+        super().__init__()
+        self.fused_all: list[bool] = []  # each frame's add_frame(fuse_all=...)
+
+    def add_frame(
+        self, frame: SimpleNamespace, color_points: int, observed_points: int, fuse_all: bool = True
+    ) -> FrameStats:
+        self.fused_all.append(fuse_all)
         return FrameStats(frame.index, 0.01, 0, 1, 1)
 
     def live_step(self) -> float:
@@ -223,6 +249,13 @@ def test_a_realtime_run_autosaves_every_m_seconds_and_when_the_stream_ends() -> 
     assert all(last == n - 1 for n, last, _ in saves)  # each holds the frames up to the one just integrated
     assert (np.diff([n for n, _, _ in saves]) > 0).all()  # never twice the same frames
     assert (np.diff([t for _, _, t in saves[:-1]]) >= 0.1 - 1e-9).all()  # due by time; the last one at the end
+
+
+def test_frames_integrated_while_others_wait_fuse_every_lattice_every_other_frame() -> None:
+    run = AnytimeRun(IntegratingMapper(), ArrivedFeed(range(9)), AnytimeConfig(), FakeClock(0.01))  # type: ignore[arg-type]
+    run.stream()
+    assert run.mapper.fused_all == [False, True] * 4 + [True]  # the last one: no frame waits (the end not counted)
+    assert run.totals.thinned == 4 and run.totals.integrated == 9
 
 
 def test_a_failing_autosave_of_a_realtime_run_is_reported_once_and_mapping_goes_on() -> None:

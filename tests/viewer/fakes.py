@@ -121,6 +121,7 @@ class FakeMapper:
         self.events: list[tuple[str, int]] = []
         self.warm_up_s = 0.0  # seconds `warm_up` takes (loading kernels)
         self.prepared_ahead: list[int] = []  # frames the reader thread prepared (real-time mode)
+        self.fused_all: list[bool] = []  # real-time mode: each add_frame's fuse_all
 
     def prepare_ahead(self, frame: RgbdFrame) -> None:
         self.prepared_ahead.append(frame.index)
@@ -152,8 +153,11 @@ class FakeMapper:
     def keyframe_rays(self) -> list[KeyframeInfo]:
         return self._keyframes
 
-    def add_frame(self, frame: RgbdFrame, color_points: int = 0, observed_points: int = 0) -> FrameStats:
+    def add_frame(
+        self, frame: RgbdFrame, color_points: int = 0, observed_points: int = 0, fuse_all: bool = True
+    ) -> FrameStats:
         """Real-time integration: the frame's voxels, no steps."""
+        self.fused_all.append(fuse_all)
         if frame.index in self.fail_frames:
             raise RuntimeError(f"mapping frame {frame.index} failed on purpose")
         time.sleep(self.add_delay_s)

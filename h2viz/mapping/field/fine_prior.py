@@ -110,16 +110,27 @@ class FinePrior:
     # ------------------------------------------------------------------------------------------- fusion
     @torch.no_grad()
     def fuse(
-        self, voxel_origin: torch.Tensor, depth_m: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray
+        self,
+        voxel_origin: torch.Tensor,
+        depth_m: np.ndarray,
+        K: np.ndarray,
+        T_world_camera: np.ndarray,
+        voxels: np.ndarray | None = None,
     ) -> None:
-        """Average one frame's truncated projective SDF into every lattice point in view (voxels (V,3) origins)."""
+        """Average one frame's truncated projective SDF into every lattice point in view (voxels (V,3) origins);
+        with `voxels` (M,) (distinct indices), into those voxels' lattices only."""
         n_voxels = min(voxel_origin.shape[0], self.state.shape[0])
+        if voxels is not None:
+            voxels = np.asarray(voxels, np.int64)
+            voxels = voxels[voxels < n_voxels]
+            if voxels.size == 0:
+                return
         if n_voxels == 0:
             return
         T_camera_world = invert_se3(np.asarray(T_world_camera, np.float64))
         kernels = self._kernels()
         if kernels is None:
-            self._fuse_reference(voxel_origin[:n_voxels], depth_m, K, T_camera_world)
+            self._fuse_reference(voxel_origin[:n_voxels], depth_m, K, T_camera_world, voxels)
             return
         kernels.fuse(  # type: ignore[attr-defined]
             np.ascontiguousarray(voxel_origin[:n_voxels].cpu().numpy(), np.float32),
@@ -130,6 +141,7 @@ class FinePrior:
             SUB,
             self.truncation_m,
             self.state.view(-1, 2).numpy(),
+            voxels,
         )
 
     def _lattice_points(self, voxel_origin: torch.Tensor) -> torch.Tensor:
@@ -139,11 +151,17 @@ class FinePrior:
         return voxel_origin[:, None, :].float() + grid[None] * (self.voxel_size_m / SUB)
 
     def _fuse_reference(
-        self, voxel_origin: torch.Tensor, depth_m: np.ndarray, K: np.ndarray, T_camera_world: np.ndarray
+        self,
+        voxel_origin: torch.Tensor,
+        depth_m: np.ndarray,
+        K: np.ndarray,
+        T_camera_world: np.ndarray,
+        voxels: np.ndarray | None = None,
     ) -> None:
-        """`fuse` in torch, every lattice point of every voxel at once."""
+        """`fuse` in torch, every lattice point of every voxel (or of `voxels` (M,)) at once."""
         dev = self.state.device
-        pts = self._lattice_points(voxel_origin.to(dev)).reshape(-1, 3).double()  # (V*P,3)
+        rows = torch.arange(voxel_origin.shape[0], device=dev) if voxels is None else torch.from_numpy(voxels).to(dev)
+        pts = self._lattice_points(voxel_origin.to(dev)[rows]).reshape(-1, 3).double()  # (M*P,3)
         T = torch.from_numpy(np.asarray(T_camera_world, np.float64)).to(dev)
         cam = pts @ T[:3, :3].T + T[:3, 3]  # (V*P,3)
         z = cam[:, 2]
@@ -159,9 +177,11 @@ class FinePrior:
         sdf = d - z
         take = inside & (d > 0) & (sdf >= -self.truncation_m)
         val = (sdf.clamp(max=self.truncation_m) / self.truncation_m).float()
-        flat = self.state[: voxel_origin.shape[0]].reshape(-1, 2)
+        lattices = self.state[rows]  # (M,P,2), a copy: written back whole
+        flat = lattices.view(-1, 2)
         flat[take, 0] += val[take]
         flat[take, 1] += 1.0
+        self.state[rows] = lattices
 
     # ------------------------------------------------------------------------------------------- lookups
     def blend(

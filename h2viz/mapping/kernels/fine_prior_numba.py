@@ -12,10 +12,11 @@ from h2viz.mapping.kernels.jit import njit, parallel_region
 @njit(parallel=True)
 def _fuse_kernel(
     origin: np.ndarray, depth: np.ndarray, K: np.ndarray, T_camera_world: np.ndarray, vs: float, sub: int,
-    tr: float, state: np.ndarray,
+    tr: float, state: np.ndarray, voxels: np.ndarray,
 ) -> None:  # fmt: skip
     """state (V*(sub+1)^3, 2) += (truncated SDF in tr units, 1) at every lattice point of voxels with origins
-    (V,3) that projects onto valid depth and lies at most tr behind it.
+    (V,3) that projects onto valid depth and lies at most tr behind it, in the voxels listed in `voxels` (M,)
+    (distinct indices).
 
     Voxels whose bounding sphere projects wholly off the image are skipped (the bound holds off the optical axis
     too, where a sphere's image is stretched), and the threads then share the voxels in view (allocated together,
@@ -28,8 +29,9 @@ def _fuse_kernel(
     radius = 0.5 * np.sqrt(3.0) * vs
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     R, t = T_camera_world[:3, :3], T_camera_world[:3, 3]
-    in_view = np.zeros(origin.shape[0], np.bool_)
-    for v in numba.prange(origin.shape[0]):
+    in_view = np.zeros(voxels.shape[0], np.bool_)
+    for c in numba.prange(voxels.shape[0]):
+        v = voxels[c]
         hx, hy, hz = origin[v, 0] + 0.5 * vs, origin[v, 1] + 0.5 * vs, origin[v, 2] + 0.5 * vs
         zc = R[2, 0] * hx + R[2, 1] * hy + R[2, 2] * hz + t[2]
         if zc < -radius:
@@ -43,10 +45,10 @@ def _fuse_kernel(
             rv = fy * radius * np.sqrt(zc * zc + yc * yc) / ((zc - radius) * zc) + 1.0
             if uc < -ru or uc > w + ru or vc < -rv or vc > h + rv:
                 continue
-        in_view[v] = True
+        in_view[c] = True
     visible = np.nonzero(in_view)[0]
     for q in numba.prange(visible.shape[0]):
-        v = visible[q]
+        v = voxels[visible[q]]
         base = v * n * n * n
         ox, oy, oz = float(origin[v, 0]), float(origin[v, 1]), float(origin[v, 2])
         for i in range(n):
@@ -79,11 +81,14 @@ def _fuse_kernel(
 
 def fuse(
     origin: np.ndarray, depth: np.ndarray, K: np.ndarray, T_camera_world: np.ndarray, vs: float, sub: int,
-    tr: float, state: np.ndarray,
+    tr: float, state: np.ndarray, voxels: np.ndarray | None = None,
 ) -> None:  # fmt: skip
-    """`_fuse_kernel` under the package's parallel-kernel lock."""
+    """`_fuse_kernel` under the package's parallel-kernel lock (voxels (M,): fuse only those; None: all)."""
+    listed = np.arange(origin.shape[0]) if voxels is None else np.ascontiguousarray(voxels, np.int64)
+    if listed.size == 0:
+        return
     with parallel_region():
-        _fuse_kernel(origin, depth, K, T_camera_world, vs, sub, tr, state)
+        _fuse_kernel(origin, depth, K, T_camera_world, vs, sub, tr, state, listed)
 
 
 @njit(parallel=True)

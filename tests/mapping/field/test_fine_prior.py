@@ -106,6 +106,25 @@ def test_kernels_match_the_torch_reference(seed: int) -> None:
         assert torch.allclose(a, b, atol=1e-5)
 
 
+@pytest.mark.parametrize("fused", [True, False], ids=["kernels", "reference"])
+def test_fusing_listed_voxels_writes_only_theirs_as_fusing_all_would(fused: bool) -> None:
+    rng = np.random.default_rng(3)
+    origins = _voxels(range(-3, 3), range(-2, 2), range(4, 10))
+    depth = rng.uniform(0.5, 1.0, (120, 160)).astype(np.float32)
+    listed = np.array([5, 0, 77, 140, 31])  # any order
+    whole, part = _prior(origins, fused), _prior(origins, fused)
+    whole.fuse(origins, depth, K, np.eye(4))
+    part.fuse(origins, depth, K, np.eye(4), voxels=listed)
+    others = np.setdiff1d(np.arange(origins.shape[0]), listed)
+    assert part.state[listed, :, 1].sum() > 500
+    assert torch.equal(part.state[listed], whole.state[listed])
+    assert not part.state[others].any()
+    part.fuse(origins, depth, K, np.eye(4), voxels=others)  # the rest in a second call: the same as all at once
+    assert torch.equal(part.state, whole.state)
+    part.fuse(origins, depth, K, np.eye(4), voxels=np.zeros(0, np.int64))  # none listed: nothing fused
+    assert torch.equal(part.state, whole.state)
+
+
 def test_voxels_at_the_image_border_far_off_axis_are_fused_like_the_reference() -> None:
     """Near the camera and far off its axis a voxel's image is stretched beyond its centre's distance times the
     radius over depth: culling by that circle skipped voxels whose corners still project into the image."""
