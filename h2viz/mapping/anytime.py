@@ -9,8 +9,10 @@ fixed number of steps per frame that makes a 30 Hz stream drop most of its frame
 `AnytimeSchedule` makes the decision (integrate the waiting frame, or take a step) from the seconds each costs and
 the frames waiting, so that integration comes first (a stream integration keeps up with loses no frame) while
 optimisation keeps at least `opt_share` of the mapping thread's time when integration is not catching up.
-`Plateau` ends the optimisation after the stream ends once the loss stops improving. Neither measures time
-itself: callers pass the seconds in (tests drive them with a fake clock).
+`FusionStride` decides whether a frame fuses its depth into every fine-prior lattice in view or, while other frames
+wait, only into its new voxels' (every `anytime.fine_prior_stride`-th frame still fuses whole). `Plateau` ends the
+optimisation after the stream ends once the loss stops improving. None of them measures time itself: callers pass
+the seconds in (tests drive them with a fake clock).
 """
 
 from __future__ import annotations
