@@ -7,7 +7,8 @@ autogroup scheduler gives an equal share of the cores: a browser drawing continu
 two cores. --browser-background gives the browsers the lowest CPU priority, so that their drawing gets only the
 time mapping leaves idle (it still costs mapping some: caches, memory bandwidth). --remote connects clients that
 receive everything a browser does and draw nothing: what a browser on another machine, or one drawing with a
-GPU, costs this one (meshing, encoding, sending). --repeat runs the plan several times with a headless run before
+GPU, costs this one (meshing, encoding, sending); with --remote-latency the latency run times mesh arrivals at
+such a client instead of a local browser. --repeat runs the plan several times with a headless run before
 and after every configuration, each compared with the mean of its two neighbours, so that ratios survive the
 machine's speed drifting between runs.
 
@@ -72,25 +73,34 @@ for (const proto of [WebGL2RenderingContext.prototype, WebGLRenderingContext.pro
 Key = tuple[int, int, int]
 REMOTE_MARK = "h2viz-remote-client"
 REMOTE_CLIENT = f"""
-import sys, msgspec, viser
+import sys, time, msgspec, viser
 from viser._messages import ViewerCameraMessage
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 camera = ViewerCameraMessage((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1.0, 0.01, 100.0, 600, 800, (0.0, 0.0, 1.0),
                              (0.0, -1.0, 0.0))
 received = 0  # {REMOTE_MARK}
+log = open(sys.argv[2], "w", buffering=1) if len(sys.argv) > 2 else None  # mesh chunk arrivals, one a line
+if log is not None:
+    sys.path.insert(0, sys.argv[3])
+    from h2viz.viewer.wire import decode_frame
 try:
     with connect(sys.argv[1], subprotocols=["viser-v" + viser.__version__], max_size=None) as ws:
         ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))  # viser counts a client from its camera
         for message in ws:
             received += len(message)
+            if log is not None and isinstance(message, bytes):
+                now = time.time()
+                for m in decode_frame(message):
+                    log.write(f"{{now}}\\t{{m.type}}\\t{{m.name or ''}}\\t{{m.nbytes}}\\n")
 except ConnectionClosed:
     pass
 print(received, flush=True)
 """
 """A viser client that receives everything the dashboard sends and draws nothing: a browser on another machine
 (or with a GPU), as far as this machine's CPU is concerned. It runs in a process of its own, counted apart, and
-prints the bytes it received when the server closes the connection."""
+prints the bytes it received when the server closes the connection. Given a file and the project root, it also
+writes each message it receives there (time, type, name, bytes: the latency run with a remote client)."""
 
 
 @dataclass
@@ -126,7 +136,8 @@ class Run:
         if self.browsers == 0:
             return "0 browser(s) (dashboard up, nothing meshed until a browser connects)"
         if self.remote:
-            return f"{self.browsers} remote client(s) (drawing elsewhere)"
+            recorded = ", recording its websocket" if self.recorded else ""
+            return f"{self.browsers} remote client(s) (drawing elsewhere){recorded}"
         label = f"{self.browsers} browser(s)" + (" at background priority" if self.background else "")
         return label + (", recording page 0's websocket" if self.recorded else "")
 
@@ -240,6 +251,18 @@ class Wire:
                 count[0], count[1] = count[0] + 1, count[1] + m.nbytes
             self.arrivals.extend((now, m.name, m.nbytes) for m in messages if m.type == "GlbMessage" and m.name)
 
+    def read_log(self, path: Path) -> None:
+        """Take the messages a remote client wrote to `path` (REMOTE_CLIENT) as this wire's arrivals."""
+        frames: set[str] = set()
+        for line in path.read_text().splitlines():
+            t, kind, name, nbytes = line.split("\t")
+            frames.add(t)
+            count = self.kinds.setdefault(kind, [0, 0])
+            count[0], count[1] = count[0] + 1, count[1] + int(nbytes)
+            if kind == "GlbMessage" and name:
+                self.arrivals.append((float(t), name, int(nbytes)))
+        self.frames += len(frames)
+
     def arrival(self, key: Key, version: int) -> tuple[float, int] | None:
         """(time, bytes) the browser first received chunk `key` at `version` (or a newer one); for a chunk
         meshed empty (the mesher drops it) there is nothing to receive: the time the scene was updated without it."""
@@ -334,9 +357,14 @@ def mapping_run(
     dashboard.start()
     for page in pages:
         page.goto(dashboard.url)
+    log = Path(tempfile.mkdtemp(prefix="h2viz-bench-")) / "arrivals.tsv" if remote and record else None
     if remote:
         ws_url = dashboard.url.replace("http://", "ws://")
-        readers = [subprocess.Popen([sys.executable, "-c", REMOTE_CLIENT, ws_url]) for _ in range(n_browsers)]
+        logged = [] if log is None else [str(log), str(ROOT)]
+        readers = [
+            subprocess.Popen([sys.executable, "-c", REMOTE_CLIENT, ws_url, *(logged if i == 0 else [])])
+            for i in range(n_browsers)
+        ]
     deadline = time.time() + 120
     while dashboard.client_count() < n_browsers and time.time() < deadline:
         time.sleep(0.2)
@@ -350,7 +378,7 @@ def mapping_run(
         if background and time.time() > next_check:  # and the threads the browsers started since
             background_browsers(os.getpid())
             next_check = time.time() + 1.0
-        if record:
+        if record and pages:
             pages[0].wait_for_timeout(100)  # Playwright delivers the frame events while it waits
     cpu1 = cpu_seconds()
     run.cpu_s = {k: v - cpu0.get(k, 0.0) for k, v in cpu1.items()}
@@ -360,9 +388,14 @@ def mapping_run(
             pages[0].wait_for_timeout(100)
     if pages:
         pages[0].wait_for_timeout(3000)  # let the last update arrive
+    elif log is not None:
+        time.sleep(3.0)
     for reader in readers:
         reader.terminate()
         reader.wait(10)
+    if log is not None:
+        wire.read_log(log)
+        shutil.rmtree(log.parent, ignore_errors=True)
     snap = worker.slot.get()[1]
     run.frames = snap.frames_done
     run.map_s = [s.map_time_s for s in snap.stats]
@@ -534,6 +567,11 @@ def main() -> None:
     parser.add_argument("--no-renders", action="store_true", help="skip the novel-view render timings")
     parser.add_argument("--no-headless", action="store_true", help="skip the run without dashboard")
     parser.add_argument("--no-latency", action="store_true", help="skip the run that times mesh arrivals")
+    parser.add_argument(
+        "--remote-latency",
+        action="store_true",
+        help="time mesh arrivals at a remote client (a browser drawing elsewhere) instead of a local browser",
+    )
     parser.add_argument("--hide-mesh", action="store_true", help="mesh layer off (what the rest of the page costs)")
     parser.add_argument(
         "--browser-background",
@@ -559,7 +597,7 @@ def main() -> None:
     runs: list[Run] = []
     renders: list[tuple[str, float, float]] = []
     plan = [(n, False, False) for n in args.browsers] + [(n, False, True) for n in args.remote]
-    plan += [] if args.no_latency else [(1, True, False)]
+    plan += [] if args.no_latency else [(1, True, args.remote_latency)]
     with sync_playwright() as playwright:
         for repeat in range(args.repeat):
             steps: list[tuple[int, bool, bool] | None] = [None, *plan]

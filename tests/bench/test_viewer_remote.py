@@ -6,17 +6,22 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
+import pytest
 
-from bench.viewer import REMOTE_CLIENT, Run, vs_headless
+from bench.viewer import REMOTE_CLIENT, ROOT, Run, Wire, vs_headless
 from h2viz.viewer.server import make_viser_server
 
 
-def test_the_remote_client_counts_as_a_client_and_receives_what_the_scene_sends() -> None:
+@pytest.mark.parametrize("logged", [False, True], ids=["counting", "logging arrivals"])
+def test_the_remote_client_counts_as_a_client_and_receives_what_the_scene_sends(logged: bool, tmp_path: Path) -> None:
     server = make_viser_server("127.0.0.1", 0)
+    log = tmp_path / "arrivals.tsv"
     reader = subprocess.Popen(
-        [sys.executable, "-c", REMOTE_CLIENT, f"ws://127.0.0.1:{server.get_port()}"], stdout=subprocess.PIPE
+        [sys.executable, "-c", REMOTE_CLIENT, f"ws://127.0.0.1:{server.get_port()}", *([str(log), str(ROOT)] * logged)],
+        stdout=subprocess.PIPE,
     )
     try:
         deadline = time.time() + 30
@@ -32,6 +37,12 @@ def test_the_remote_client_counts_as_a_client_and_receives_what_the_scene_sends(
     out, _ = reader.communicate(timeout=30)
     assert reader.returncode == 0
     assert int(out.decode().strip()) > len(payload)
+    assert log.exists() == logged
+    if logged:  # the latency run with a remote client: when each mesh chunk arrived, and its size
+        wire = Wire()
+        wire.read_log(log)
+        assert [(name, size) for _, name, size in wire.arrivals] == [("/blob", len(payload))]
+        assert 0 < time.time() - wire.arrivals[0][0] < 30 and wire.kinds["GlbMessage"] == [1, len(payload)]
 
 
 def run(browsers: int, frames: int, seconds: float, repeat: int) -> Run:
