@@ -455,6 +455,17 @@ def render_times(worker: MappingWorker) -> list[tuple[str, float, float]]:
     return out
 
 
+def ranges(positions: list[int]) -> str:
+    """Sorted positions as ranges: [1, 2, 3, 7, 9, 10] -> "1-3, 7, 9-10"."""
+    runs: list[list[int]] = []
+    for p in positions:
+        if runs and p == runs[-1][1] + 1:
+            runs[-1][1] = p
+        else:
+            runs.append([p, p])
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs) or "-"
+
+
 def _median_p90_max(values: list[float], scale: float = 1.0) -> str:
     if not values:
         return "-"
@@ -516,8 +527,9 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
         print(f"\n| mesh streaming ({r.label}) | median / p90 / max |\n|---|---:|")
         for name, values, scale in rows:
             print(f"| {name} | {_median_p90_max(values, scale)} |")
-        late = sum(1 for s in r.all_s if s > 1.0)
-        print(f"| frames whose chunks took more than 1 s to reach the browser | {late} of {len(r.all_s)} |")
+        late = [n for n, s in enumerate(r.all_s, start=1) if s > 1.0]
+        print(f"| frames whose chunks took more than 1 s to reach the browser | {len(late)} of {len(r.all_s)} |")
+        print(f"| those frames (their places in integration order, among the frames timed) | {ranges(late)} |")
         print(f"| mesh updates received | {len(r.update_bytes)} |")
         print(f"| chunks re-meshed by refresh passes | {r.refreshed} |")
         print(f"| mesh thread busy / mapping time | {100 * r.mesh_busy_share:.0f} % |")

@@ -153,6 +153,34 @@ def test_while_a_realtime_stream_arrives_mesh_jobs_come_at_the_update_rate(make_
     assert worker.slot.get()[1].dropped == 0
 
 
+@pytest.mark.parametrize("cap", [3, 0])
+def test_while_a_realtime_stream_arrives_the_live_mesh_is_extracted_at_most_at_the_stream_resolution(
+    make_worker: Factory, cap: int
+) -> None:
+    """Mesh jobs while frames arrive mesh at viewer.stream_mesh_resolution (0: no cap); the resolution people chose
+    (live_mesh_resolution, the slider) is what settings report and what the mesh returns to after the stream."""
+    source, mapper = RoomAt15Hz(n=30), FakeMapper()
+    mapper.add_delay_s, mapper.step_delay_s = 0.005, 0.004
+    jobs: list[tuple[int, int]] = []  # (frames integrated, resolution meshed at) of every job frozen
+    frozen = mapper.mesh_job
+
+    def recorded_job(refresh_s: float = 0.0, whole: bool = False) -> object:
+        jobs.append((mapper.frames_done, mapper.meshing_resolution))
+        return frozen(refresh_s, whole)
+
+    mapper.mesh_job = recorded_job  # type: ignore[method-assign]
+    cfg = anytime_cfg()
+    cfg.viewer = replace(cfg.viewer, live_mesh_resolution=4, stream_mesh_resolution=cap)
+    worker = make_worker(source, mapper, cfg=cfg, realtime=True, mesh_update_hz=4.0)
+    wait_for(worker, lambda s: s.frames_done >= 10)
+    chosen = worker.submit("set", mesh_resolution=6).result(5)
+    assert chosen["mesh_resolution"] == 6  # as chosen, whatever the stream meshes at
+    assert worker.wait_finished(20)
+    streaming = [res for done, res in jobs if 1 <= done < 30]
+    assert len(streaming) >= 3 and set(streaming) <= ({4, 6} if cap == 0 else {3})
+    assert jobs[-1] == (30, 6) and mapper.meshing_resolution == 6  # the chosen resolution after the stream
+
+
 def test_while_a_realtime_stream_arrives_metrics_are_refreshed_off_the_mapping_thread(make_worker: Factory) -> None:
     """Ground-truth metrics are due every metrics_every frames; the mesh thread computes them with its next publish
     (the mapping thread a 30 Hz stream keeps busy never does), and the snapshots carry them while frames arrive."""

@@ -16,6 +16,7 @@ import torch
 import trimesh
 
 from h2viz.config import MappingConfig
+from h2viz.errors import ConfigError
 from h2viz.mapping import warmup
 from h2viz.mapping.backend import Backend, resolve_backend
 from h2viz.mapping.field.color_views import ColorViews, StoredView
@@ -128,6 +129,7 @@ class Mapper:
         self.color_views = ColorViews(views.color_views, views.color_views_mb, views.color_views_field)  # rendering
         self.copy_pool = CopyPool()  # memory for the frozen fields of mesh jobs, reused job after job
         self.mesher = ChunkedMesher(rep.voxel_size_m, mesh.mesh_resolution, mesh.chunk_voxels, self.backend)
+        self._mesh_resolution, self._mesh_resolution_cap = self.mesher.resolution, 0  # see mesh_resolution
         self.touched = np.zeros(0, dtype=bool)  # (V,) voxels allocated or observed since the last mesh job
         self.trajectory: list[np.ndarray] = []
         self.frames_done = 0
@@ -485,11 +487,33 @@ class Mapper:
 
     @property
     def mesh_resolution(self) -> int:
-        return self.mesher.resolution
+        """Marching-cubes cells per voxel edge of the live mesh, as chosen (the mesher works at
+        min(it, `mesh_resolution_cap`) while a cap is set)."""
+        return self._mesh_resolution
 
     @mesh_resolution.setter
     def mesh_resolution(self, value: int) -> None:
-        self.mesher.resolution = int(value)
+        self._set_mesh_resolution(int(value), self._mesh_resolution_cap)
+
+    @property
+    def mesh_resolution_cap(self) -> int:
+        """Largest resolution the live mesh is extracted at for now (0 = none; a real-time stream's)."""
+        return self._mesh_resolution_cap
+
+    @mesh_resolution_cap.setter
+    def mesh_resolution_cap(self, value: int) -> None:
+        self._set_mesh_resolution(self._mesh_resolution, int(value))
+
+    @property
+    def meshing_resolution(self) -> int:
+        """The resolution the live mesh is extracted at now (`mesh_resolution` under its cap)."""
+        return self.mesher.resolution
+
+    def _set_mesh_resolution(self, resolution: int, cap: int) -> None:
+        if cap < 0:
+            raise ConfigError(f"mesh resolution cap must be >= 0 (0 = none), got {cap}")
+        self.mesher.resolution = min(resolution, cap) if cap > 0 else resolution  # checks the range first
+        self._mesh_resolution, self._mesh_resolution_cap = resolution, cap
 
     def mesh_job(self, refresh_s: float = 0.0, whole: bool = False) -> MeshJob | None:
         """Freeze what a mesh update needs, to run on any thread while mapping goes on: new voxels first, then

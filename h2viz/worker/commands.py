@@ -118,7 +118,7 @@ class CommandServing:
     def _export(self, args: dict[str, Any]) -> bytes:
         """The mesh at the full resolution of cfg.mapping (the live mesh is re-meshed whole when it has it)."""
         resolution = self.cfg.mapping.meshing.mesh_resolution
-        if resolution == self.mapper.mesh_resolution:
+        if resolution == self.mapper.meshing_resolution:  # the live mesh is at that resolution now
             self._remesh()
         return requests.export_mesh_bytes(self.mapper, str(args.get("format", "ply")), resolution)
 

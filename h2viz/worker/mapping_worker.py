@@ -576,7 +576,11 @@ class MappingWorker(CommandServing):
         return s.mesh_every > 0 and self._unmeshed >= s.mesh_every
 
     def _submit_mesh(self, refresh_s: float, whole: bool = False) -> None:
-        """Freeze the field and hand the mesh thread a job (nothing when the mesh is up to date)."""
+        """Freeze the field and hand the mesh thread a job (nothing when the mesh is up to date). While a real-time
+        stream arrives the job meshes at most at viewer.stream_mesh_resolution (a change re-meshes every chunk)."""
+        cap = self.cfg.viewer.stream_mesh_resolution if self._streaming() else 0
+        if self.mapper.mesh_resolution_cap != cap:
+            self.mapper.mesh_resolution_cap = cap
         try:
             job = self.mapper.mesh_job(refresh_s, whole)
         except Exception as e:  # keep mapping; the next job retries the same chunks

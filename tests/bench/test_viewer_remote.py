@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.viewer import REMOTE_CLIENT, ROOT, Run, Wire, vs_headless
+from bench.viewer import REMOTE_CLIENT, ROOT, Run, Wire, ranges, vs_headless
 from h2viz.viewer.server import make_viser_server
 
 
@@ -58,3 +58,8 @@ def test_each_run_is_compared_with_the_headless_runs_around_it() -> None:
     assert vs_headless(runs[0], runs) == 0.0
     assert vs_headless(run(1, 60, 25.0, 2), runs) is None  # not among the runs
     assert vs_headless(runs[1], runs[1:2]) is None  # no headless run at all
+
+
+def test_late_frames_are_listed_as_ranges() -> None:
+    assert ranges([1, 2, 3, 7, 9, 10]) == "1-3, 7, 9-10"
+    assert ranges([4]) == "4" and ranges([]) == "-"

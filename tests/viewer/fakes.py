@@ -106,6 +106,8 @@ class FakeMapper:
         self._keyframes: list[KeyframeInfo] = []
         self._version = 0
         self._mesh_resolution = 8
+        self.resolution_caps: list[int] = []  # each mesh_resolution_cap set, in order
+        self._cap = 0
         self._observed_only = True
         self.rendered: list[tuple[int, int, str]] = []
         self.steps_per_frame = 3
@@ -139,6 +141,20 @@ class FakeMapper:
     def mesh_resolution(self, value: int) -> None:
         self._mesh_resolution = int(value)
         self._dirty |= set(self._chunks)
+
+    @property
+    def mesh_resolution_cap(self) -> int:
+        return self._cap
+
+    @mesh_resolution_cap.setter
+    def mesh_resolution_cap(self, value: int) -> None:
+        self._cap = int(value)
+        self.resolution_caps.append(self._cap)
+        self._dirty |= set(self._chunks)
+
+    @property
+    def meshing_resolution(self) -> int:
+        return min(self._mesh_resolution, self._cap) if self._cap else self._mesh_resolution
 
     @property
     def mesh_observed_only(self) -> bool:

@@ -15,6 +15,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from h2viz.config import MappingConfig
+from h2viz.errors import ConfigError
 from h2viz.geometry import backproject
 from h2viz.mapping.field import copy_pool
 from h2viz.mapping.field.copy_pool import CopyPool
@@ -268,3 +269,30 @@ def test_mesh_jobs_use_the_configured_band_and_moved_surfaces_within_it_are_mesh
     off, _, _ = sphere_mapper(1, priors=False)
     job = off.mesh_job()
     assert job is not None and job.field.prior_band == 0.0  # without priors there is no band
+
+
+def test_a_resolution_cap_meshes_coarser_until_it_is_lifted_and_keeps_the_chosen_resolution() -> None:
+    """A real-time stream caps the live mesh's resolution (viewer.stream_mesh_resolution): jobs mesh at the cap,
+    the chosen resolution stays what `mesh_resolution` says, and lifting the cap re-meshes every chunk at it."""
+    mapper, _, _ = sphere_mapper(2)
+    mapper.mesh_resolution = 4
+    mapper.mesh_resolution_cap = 2
+    assert (mapper.mesh_resolution, mapper.meshing_resolution) == (4, 2)
+    mapper.update_mesh()
+    coarse = merge_chunks(mapper.mesh_chunks())
+    mapper.mesh_resolution = 6  # chosen while capped: the cap still holds
+    assert (mapper.mesh_resolution, mapper.meshing_resolution) == (6, 2)
+    mapper.mesh_resolution_cap = 8  # above the chosen resolution: no effect
+    assert mapper.meshing_resolution == 6
+    mapper.mesh_resolution_cap = 0
+    mapper.mesh_resolution = 4
+    job = mapper.mesh_job(0.0)
+    assert job is not None  # every chunk is stale at the new resolution
+    job.run()
+    fine = merge_chunks(mapper.mesh_chunks())
+    assert len(fine.faces) > 3 * len(coarse.faces)  # ~(4/2)^2 as many faces
+    with pytest.raises(ConfigError, match="resolution cap"):
+        mapper.mesh_resolution_cap = -1
+    with pytest.raises(ConfigError, match="resolution 10000 is out of range"):
+        mapper.mesh_resolution = 10_000  # refused, nothing changed
+    assert (mapper.mesh_resolution, mapper.mesh_resolution_cap, mapper.meshing_resolution) == (4, 0, 4)
