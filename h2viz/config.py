@@ -464,8 +464,8 @@ class ViewerConfig:
     and an eighth of the field evaluations of mapping.meshing.mesh_resolution = 8, which mesh downloads use)."""
     stream_mesh_resolution: int = 3
     """While a real-time stream arrives, the live mesh is extracted at most at this resolution (3.3 cm cells;
-    0 = no cap): on two cores a live mesh job at 4 took ~2x as long, and mesh changes reached a client 1.3 s after
-    their frame (median) instead of 0.65 s (docs/anytime.md). The live resolution (live_mesh_resolution, or the
+    0 = no cap): on two cores a live mesh job at 4 took ~2x as long, and mesh changes reached a client 0.95-1.4 s
+    after their frame (median) instead of 0.6-0.95 s (docs/anytime.md). The live resolution (live_mesh_resolution, or the
     dashboard's slider) returns when the stream ends or pauses; each switch re-meshes every chunk once."""
     start_paused: bool = False
     """Open with mapping paused."""
