@@ -132,6 +132,10 @@ def splat(
         _splat_kernel(points, rgb, keys, ids, origin, vs, sub, sums, threads)
 
 
+BLEND_CHUNK = 256
+"""Points per parallel task of `blend` (its scratch arrays are allocated once a task, not once a point)."""
+
+
 @njit(parallel=True)
 def blend(
     points: np.ndarray, keys: np.ndarray, ids: np.ndarray, origin: np.ndarray, vs: float, sub: int,
@@ -143,32 +147,33 @@ def blend(
     inv_cell = sub / vs
     cell = vs / sub
     n_voxels = min(origin.shape[0], sums.shape[0] // ((sub + 1) ** 3))  # a frozen copy may lag the live octree
-    for i in numba.prange(points.shape[0]):
+    n = points.shape[0]
+    for task in numba.prange((n + BLEND_CHUNK - 1) // BLEND_CHUNK):
         idx, w = np.empty(8, np.int64), np.empty(8, np.float32)
-        acc = np.zeros(4, np.float32)
-        p = points[i]
+        acc = np.empty(4, np.float32)
         q = np.empty(3, np.float32)
-        c0 = np.empty(3, np.int64)
-        for a in range(3):
-            c0[a] = int(np.floor(p[a] / vs))
-        for code in range(27):
-            off = (code // 9 - 1, code // 3 % 3 - 1, code % 3 - 1)
-            near = True
-            for a in range(3):
-                lo = p[a] - c0[a] * vs  # position inside the point's own voxel, metres
-                if (off[a] == -1 and lo >= cell) or (off[a] == 1 and lo <= vs - cell):
-                    near = False
-            if not near:
-                continue
-            v = lookup(keys, ids, c0[0] + off[0], c0[1] + off[1], c0[2] + off[2])
-            if v < 0 or v >= n_voxels:
-                continue
-            for a in range(3):
-                q[a] = p[a]
-            _lattice(q, v, origin, inv_cell, sub, idx, w)  # clamps the point onto the voxel's box
-            for k in range(8):
-                for c in range(4):
-                    acc[c] += w[k] * sums[idx[k], c]
-        for c in range(3):
-            out_rgb[i, c] = acc[c] / acc[3] if acc[3] > 1e-6 else empty
-        out_w[i] = acc[3]
+        for i in range(task * BLEND_CHUNK, min(n, (task + 1) * BLEND_CHUNK)):
+            acc[:] = 0.0
+            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+            c0x, c0y, c0z = int(np.floor(px / vs)), int(np.floor(py / vs)), int(np.floor(pz / vs))
+            lox, loy, loz = px - c0x * vs, py - c0y * vs, pz - c0z * vs  # inside the point's own voxel, metres
+            for ox in range(-1, 2):  # the point's voxel, and a neighbour only within one cell of their face
+                if (ox == -1 and lox >= cell) or (ox == 1 and lox <= vs - cell):
+                    continue
+                for oy in range(-1, 2):
+                    if (oy == -1 and loy >= cell) or (oy == 1 and loy <= vs - cell):
+                        continue
+                    for oz in range(-1, 2):
+                        if (oz == -1 and loz >= cell) or (oz == 1 and loz <= vs - cell):
+                            continue
+                        v = lookup(keys, ids, c0x + ox, c0y + oy, c0z + oz)
+                        if v < 0 or v >= n_voxels:
+                            continue
+                        q[0], q[1], q[2] = px, py, pz
+                        _lattice(q, v, origin, inv_cell, sub, idx, w)  # clamps the point onto the voxel's box
+                        for k in range(8):
+                            for c in range(4):
+                                acc[c] += w[k] * sums[idx[k], c]
+            for c in range(3):
+                out_rgb[i, c] = acc[c] / acc[3] if acc[3] > 1e-6 else empty
+            out_w[i] = acc[3]

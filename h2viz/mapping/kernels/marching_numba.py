@@ -182,20 +182,19 @@ def _lattice_kernel(
     bool, points (N,3) int64 in C order, each point's voxel row (N,) (that of its cell at the largest corner
     offset, as the reference's last write) and whether a cell of a flagged voxel has it as a corner (N,)."""
     r = resolution
-    rows = np.full((dims[0], dims[1], dims[2]), -1, dtype=np.int64)
-    for i in range(len(local)):
-        rows[local[i, 0], local[i, 1], local[i, 2]] = i
-    cells = np.zeros((dims[0] * r, dims[1] * r, dims[2] * r), dtype=np.bool_)
-    used = np.zeros((dims[0] * r + 1, dims[1] * r + 1, dims[2] * r + 1), dtype=np.bool_)
+    nx, ny, nz = dims[0] * r, dims[1] * r, dims[2] * r
+    # each cell's voxel row (-1: none), cell (x, y, z) at [x + 1, y + 1, z + 1]: a border of -1 around the box
+    # spares the corner loop below its bounds checks
+    row_of = np.full((nx + 2, ny + 2, nz + 2), -1, dtype=np.int32)
+    used = np.zeros((nx + 1, ny + 1, nz + 1), dtype=np.bool_)
     for i in range(len(local)):
         x0, y0, z0 = local[i, 0] * r, local[i, 1] * r, local[i, 2] * r
-        cells[x0 : x0 + r, y0 : y0 + r, z0 : z0 + r] = True
+        row_of[x0 + 1 : x0 + r + 1, y0 + 1 : y0 + r + 1, z0 + 1 : z0 + r + 1] = i
         used[x0 : x0 + r + 1, y0 : y0 + r + 1, z0 : z0 + r + 1] = True
     n = int(used.sum())
     points = np.empty((n, 3), dtype=np.int64)
     point_voxel = np.empty(n, dtype=np.int64)
     point_flagged = np.zeros(n, dtype=np.bool_)
-    nx, ny, nz = cells.shape
     k = 0
     for x in range(nx + 1):
         for y in range(ny + 1):
@@ -203,17 +202,17 @@ def _lattice_kernel(
                 if not used[x, y, z]:
                     continue
                 points[k, 0], points[k, 1], points[k, 2] = x, y, z
-                point_voxel[k] = -1
-                for o in range(7, -1, -1):  # the cells this point is a corner of
-                    cx, cy, cz = x - ((o >> 2) & 1), y - ((o >> 1) & 1), z - (o & 1)
-                    if cx < 0 or cy < 0 or cz < 0 or cx >= nx or cy >= ny or cz >= nz or not cells[cx, cy, cz]:
+                first, flagged = -1, False
+                for o in range(7, -1, -1):  # the cells this point is a corner of, largest offset first
+                    row = row_of[x + 1 - ((o >> 2) & 1), y + 1 - ((o >> 1) & 1), z + 1 - (o & 1)]
+                    if row < 0:
                         continue
-                    row = rows[cx // r, cy // r, cz // r]
-                    if point_voxel[k] < 0:
-                        point_voxel[k] = row
-                    if flags[row]:
-                        point_flagged[k] = True
+                    if first < 0:
+                        first = row
+                    flagged |= flags[row]
+                point_voxel[k], point_flagged[k] = first, flagged
                 k += 1
+    cells = row_of[1 : nx + 1, 1 : ny + 1, 1 : nz + 1] >= 0
     return cells, points, point_voxel, point_flagged
 
 
