@@ -465,8 +465,8 @@ class ViewerConfig:
     stream_mesh_resolution: int = 3
     """While a real-time stream arrives, the live mesh is extracted at most at this resolution (3.3 cm cells;
     0 = no cap): on two cores a live mesh job at 4 took ~2x as long, and mesh changes reached a client 0.95-1.4 s
-    after their frame (median) instead of 0.6-0.95 s (docs/anytime.md). The live resolution (live_mesh_resolution, or the
-    dashboard's slider) returns when the stream ends or pauses; each switch re-meshes every chunk once."""
+    after their frame (median) instead of 0.6-0.95 s (docs/anytime.md). The live resolution (live_mesh_resolution,
+    or the dashboard's slider) returns when the stream ends or pauses; each switch re-meshes every chunk once."""
     start_paused: bool = False
     """Open with mapping paused."""
     record_fps: float = 10.0
