@@ -177,11 +177,11 @@ class FinePrior:
         sdf = d - z
         take = inside & (d > 0) & (sdf >= -self.truncation_m)
         val = (sdf.clamp(max=self.truncation_m) / self.truncation_m).float()
-        lattices = self.state[rows]  # (M,P,2), a copy: written back whole
-        flat = lattices.view(-1, 2)
-        flat[take, 0] += val[take]
-        flat[take, 1] += 1.0
-        self.state[rows] = lattices
+        P = self.n**3
+        at = (rows[:, None] * P + torch.arange(P, device=dev)).reshape(-1)[take]  # flat rows (distinct) fused
+        flat = self.state.view(-1, 2)  # written in place
+        flat[at, 0] += val[take]
+        flat[at, 1] += 1.0
 
     # ------------------------------------------------------------------------------------------- lookups
     def blend(
