@@ -15,7 +15,7 @@ import pytest
 import trimesh
 
 from h2viz.config import Config
-from h2viz.errors import H2vizError
+from h2viz.errors import ConfigError, H2vizError
 from h2viz.sources.base import make_source
 from h2viz.types import KeyframeState, RgbdFrame
 from h2viz.worker import LatestSlot, MappingWorker, RenderedView, WorkerSettings
@@ -179,6 +179,13 @@ def test_while_a_realtime_stream_arrives_the_live_mesh_is_extracted_at_most_at_t
     streaming = [res for done, res in jobs if 1 <= done < 30]
     assert len(streaming) >= 3 and set(streaming) <= ({4, 6} if cap == 0 else {3})
     assert jobs[-1] == (30, 6) and mapper.meshing_resolution == 6  # the chosen resolution after the stream
+
+
+def test_a_negative_stream_mesh_resolution_is_refused_before_mapping_starts() -> None:
+    cfg = anytime_cfg()
+    cfg.viewer = replace(cfg.viewer, stream_mesh_resolution=-1)
+    with pytest.raises(ConfigError, match="viewer.stream_mesh_resolution must be >= 0"):
+        MappingWorker(BoxRoomSource(n=2), FakeMapper(), cfg, WorkerSettings(realtime=True))  # type: ignore[arg-type]
 
 
 def test_while_a_realtime_stream_arrives_metrics_are_refreshed_off_the_mapping_thread(make_worker: Factory) -> None:

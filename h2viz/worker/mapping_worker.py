@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from h2viz.config import Config
-from h2viz.errors import H2vizError
+from h2viz.errors import ConfigError, H2vizError
 from h2viz.mapping.anytime import Action, AnytimeSchedule, FusionStride, Phase, check_anytime, plateau_from
 from h2viz.mapping.autosave import Autosaver, ResumeOffer, run_state
 from h2viz.types import Command, FrameStats, MapSnapshot, RgbdFrame
@@ -80,6 +80,8 @@ class MappingWorker(CommandServing):
         frame index a resumed mapper mapped (frames up to it are passed over) and its frames' stats."""
         self.source, self.mapper, self.cfg = source, mapper, cfg
         self.mapper.mesh_resolution = cfg.viewer.live_mesh_resolution  # downloads use cfg.mapping.mesh_resolution
+        if (cap := cfg.viewer.stream_mesh_resolution) < 0:  # refused now, not at the stream's first mesh job
+            raise ConfigError(f"viewer.stream_mesh_resolution must be >= 0 (0 = no cap), got {cap}")
         self.mapper.on_iteration = self._between_steps
         self.settings = settings or settings_from_config(cfg)
         self.slot: LatestSlot[MapSnapshot] = LatestSlot()
