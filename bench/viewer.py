@@ -117,6 +117,11 @@ class Run:
     map_s: list[float] = field(default_factory=list)  # Mapper.integrate per frame
     first_s: list[float] = field(default_factory=list)  # frame mapped -> first pass of its job in the browser
     all_s: list[float] = field(default_factory=list)  # frame mapped -> all its job's required chunks there
+    submit_s: list[float] = field(default_factory=list)  # frame mapped -> the job that includes it submitted
+    start_s: list[float] = field(default_factory=list)  # frame mapped -> that job started
+    extract_s: list[float] = field(default_factory=list)  # frame mapped -> that job's chunks for it extracted
+    published_s: list[float] = field(default_factory=list)  # frame mapped -> the mesh thread published them
+    sent_s: list[float] = field(default_factory=list)  # frame mapped -> the dashboard sent all of them
     job_s: list[float] = field(default_factory=list)  # job submitted -> its required passes done
     job_chunks: list[int] = field(default_factory=list)  # required chunks per job
     refreshed: int = 0  # chunks re-meshed by refresh passes
@@ -262,6 +267,12 @@ class Wire:
             if kind == "GlbMessage" and name:
                 self.arrivals.append((float(t), name, int(nbytes)))
         self.frames += len(frames)
+
+    def sent(self, key: Key, version: int) -> float | None:
+        """When the dashboard first sent chunk `key` at `version` (or newer), or dropped it from the scene."""
+        sent = next((t for t, chunks in self.sends if chunks.get(key, -1) >= version), None)
+        gone = next((t for t, newest, keys in self.shown if newest >= version and key not in keys), None)
+        return gone if gone is not None and (sent is None or gone < sent) else sent
 
     def arrival(self, key: Key, version: int) -> tuple[float, int] | None:
         """(time, bytes) the browser first received chunk `key` at `version` (or a newer one); for a chunk
@@ -435,6 +446,16 @@ def _measure(run: Run, worker: MappingWorker, wire: Wire) -> None:
             run.first_s.append(min(a[0] for a in first if a) - t_mapped)
         if every and all(every):
             run.all_s.append(max(a[0] for a in every if a) - t_mapped)
+            sent = [wire.sent(k, version) for p in own for k in p.chunks]
+            run.submit_s.append(own[0].submitted - t_mapped)
+            run.start_s.append(own[0].started - t_mapped)
+            extracted = max(p.finished for p in own)
+            run.extract_s.append(extracted - t_mapped)
+            published = next((t for t in worker.meshing.published if t >= extracted), None)
+            if published is not None:
+                run.published_s.append(published - t_mapped)
+            if all(t is not None for t in sent):
+                run.sent_s.append(max(t for t in sent if t is not None) - t_mapped)
     for t_sent, chunks in wire.sends:
         got = [a for k, v in chunks.items() if (a := wire.arrival(k, v)) is not None and a[0] >= t_sent - 0.01]
         if got:
@@ -519,6 +540,11 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
         rows = [
             (f"frame mapped -> first mesh change in the browser, ms ({len(r.first_s)} frames)", r.first_s, 1000),
             (f"frame mapped -> all of its chunks in the browser, ms ({len(r.all_s)} frames)", r.all_s, 1000),
+            ("  of which: frame mapped -> the job that includes it submitted, ms", r.submit_s, 1000),
+            ("  frame mapped -> that job started (the one before it ended), ms", r.start_s, 1000),
+            ("  frame mapped -> that job's chunks for it extracted, ms", r.extract_s, 1000),
+            ("  frame mapped -> the mesh thread published them, ms", r.published_s, 1000),
+            ("  frame mapped -> the dashboard sent them all, ms", r.sent_s, 1000),
             ("mesh job submitted -> its required chunks extracted, ms", r.job_s, 1000),
             ("required chunks per job", [float(c) for c in r.job_chunks], 1),
             ("kB per mesh update received", [float(b) for b in r.update_bytes], 1e-3),

@@ -81,11 +81,13 @@ class Dashboard:
             t0 = time.monotonic()
             version, snap = self.worker.slot.wait_newer(self.version, 0.25)
             try:
-                if snap is not None and version != self.version:
+                fresh = snap is not None and version != self.version
+                if fresh:
                     self.version, self._latest = version, snap
-                    self.panels.update(snap)
                 if self._latest is not None and self.scene_version != self.version:
-                    self._draw_scene(self._latest, self.version)
+                    self._draw_scene(self._latest, self.version)  # before the panels: mesh changes wait for less
+                if fresh:
+                    self.panels.update(snap)
                 self._show_errors()
             except Exception:  # keep serving; the next snapshot redraws what failed
                 log.exception("dashboard update failed")

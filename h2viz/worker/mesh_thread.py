@@ -23,6 +23,7 @@ class PassRecord:
     job_version: int  # the job's version (stamped on its chunks)
     field_version: int  # frames integrated into the field it meshed
     submitted: float  # time.time() the job was submitted
+    started: float  # time.time() the job started (after the one before it ended)
     finished: float  # time.time() the pass ended
     chunks: tuple[tuple[int, int, int], ...]  # chunks re-meshed by this pass
     required: bool  # part of the job's required chunks (changed or dirty), not the optional refresh
@@ -52,6 +53,7 @@ class MeshThread:
         self._required_since: float | None = None  # submission (monotonic) of the running job while on required passes
         self._next_publish = 0.0  # time.monotonic() from which publishing is allowed again
         self.passes: deque[PassRecord] = deque(maxlen=10_000)
+        self.published: deque[float] = deque(maxlen=10_000)  # time.time() of each publish (for measurements)
         self.errors: list[str] = []
         self.busy_s = 0.0  # seconds spent running jobs
         self._thread = threading.Thread(target=self._run, name="h2viz-meshing", daemon=True)
@@ -120,12 +122,13 @@ class MeshThread:
                 self._execute(*pending)
 
     def _execute(self, job: Any, submitted: float) -> None:
-        start = time.perf_counter()
+        start, started = time.perf_counter(), time.time()
         with self._cond:
             self._required_since = time.monotonic() - (time.time() - submitted)
 
         def on_pass(chunks: list[tuple[int, int, int]], required: bool) -> None:
-            record = PassRecord(job.version, job.field_version, submitted, time.time(), tuple(chunks), required)
+            now = time.time()
+            record = PassRecord(job.version, job.field_version, submitted, started, now, tuple(chunks), required)
             self.passes.append(record)
             with self._cond:
                 if required:
@@ -178,6 +181,7 @@ class MeshThread:
             self._next_publish = time.monotonic() + self._period()
         try:
             self._publish()
+            self.published.append(time.time())
         except Exception:
             log.exception("publishing the mesh failed")
         with self._cond:

@@ -44,3 +44,17 @@ def test_a_chunk_meshed_empty_counts_as_delivered_when_the_scene_drops_it() -> N
     wire.arrivals.append((wire.sends[-1][0] + 0.1, node_name(a), 10))
     assert wire.arrival(a, 2) == (t_gone, 0)
     assert wire.arrival(a, 9) is not None and wire.arrival(a, 9)[1] == 10
+
+
+def test_a_chunk_counts_as_sent_with_its_first_send_at_that_version_or_when_dropped() -> None:
+    wire, a, b = Wire(), (0, 0, 0), (1, 1, 1)
+    wire.on_sent(snap(chunk(a, 1), chunk(b, 1)), [a, b], 0)
+    first = wire.sends[-1][0]
+    wire.on_sent(snap(chunk(a, 3), chunk(b, 1)), [a], 0)
+    third = wire.sends[-1][0]
+    wire.on_sent(snap(chunk(a, 4)), [], 0)  # job 4 meshed b empty: the scene dropped it
+    gone = wire.shown[-1][0]
+    assert wire.sent(a, 1) == first
+    assert wire.sent(a, 2) == third  # version 2 never went out on its own: the newer version 3 carried it
+    assert wire.sent(b, 2) == gone
+    assert wire.sent(a, 5) is None
