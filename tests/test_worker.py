@@ -181,6 +181,30 @@ def test_while_a_realtime_stream_arrives_the_live_mesh_is_extracted_at_most_at_t
     assert jobs[-1] == (30, 6) and mapper.meshing_resolution == 6  # the chosen resolution after the stream
 
 
+def test_the_last_frames_of_a_realtime_stream_are_meshed_at_the_stream_resolution_before_the_whole_map(
+    make_worker: Factory,
+) -> None:
+    """Frames integrated since the last live update get their own job at the stream's resolution when the stream
+    ends; only then is every chunk re-meshed at the live resolution (a job that takes several times longer)."""
+    source, mapper = RoomAt15Hz(n=20), FakeMapper()
+    mapper.add_delay_s = 0.005
+    jobs: list[tuple[int, int, bool]] = []  # (frames integrated, resolution, whole) of every job frozen
+    frozen = mapper.mesh_job
+
+    def recorded_job(refresh_s: float = 0.0, whole: bool = False) -> object:
+        jobs.append((mapper.frames_done, mapper.meshing_resolution, whole))
+        return frozen(refresh_s, whole)
+
+    mapper.mesh_job = recorded_job  # type: ignore[method-assign]
+    cfg = anytime_cfg()
+    cfg.viewer = replace(cfg.viewer, live_mesh_resolution=4, stream_mesh_resolution=3)
+    worker = make_worker(source, mapper, cfg=cfg, realtime=True, mesh_update_hz=0.2)
+    assert worker.wait_finished(20)
+    ends = [job for job in jobs if job[0] == 20]
+    assert ends[:2] == [(20, 3, False), (20, 4, True)]  # the last frames' own job first, then the whole map
+    assert all(res == 3 for done, res, _ in jobs if done < 20)
+
+
 def test_a_negative_stream_mesh_resolution_is_refused_before_mapping_starts() -> None:
     cfg = anytime_cfg()
     cfg.viewer = replace(cfg.viewer, stream_mesh_resolution=-1)

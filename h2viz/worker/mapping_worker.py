@@ -288,6 +288,9 @@ class MappingWorker(CommandServing):
         self._resolve_steps(None)
         if self.settings.realtime:
             self._close_newest()
+            if self.live and self._unmeshed:  # the last frames' own job, at the stream's mesh resolution: after
+                self.meshing.wait_idle()  # the stream every chunk is re-meshed at the live one, which takes longer
+                self._submit_mesh(0.0)
             self._phase = Phase.SHARPENING.value
             self._plateau.reset()
             self._autosave_stream_end()
