@@ -205,6 +205,37 @@ def test_the_last_frames_of_a_realtime_stream_are_meshed_at_the_stream_resolutio
     assert all(res == 3 for done, res, _ in jobs if done < 20)
 
 
+def test_mesh_jobs_leave_their_refresh_passes_out_while_frames_of_a_stream_wait(make_worker: Factory) -> None:
+    """Integration is slower than the stream here, so frames wait: the mesh thread's jobs are told to hurry (their
+    optional refresh passes would take the cores integration needs); after the stream they are not."""
+    source, mapper = RoomAt15Hz(n=24), FakeMapper()
+    mapper.add_delay_s = 0.1
+    hurried: list[tuple[int, bool]] = []  # (frames integrated when it ran, hurry() then)
+    make_job = mapper.mesh_job
+
+    def mesh_job(refresh_s: float = 0.0, whole: bool = False) -> object:
+        job = make_job(refresh_s, whole)
+        if job is None:
+            return job
+        inner_run, done = job.run, mapper.frames_done
+
+        def run(stop: object = None, on_pass: object = None, hurry: Callable[[], bool] | None = None) -> None:
+            assert hurry is not None
+            hurried.append((done, hurry()))
+            inner_run(stop, on_pass, hurry)
+
+        job.run = run  # type: ignore[method-assign]
+        return job
+
+    mapper.mesh_job = mesh_job  # type: ignore[method-assign]
+    worker = make_worker(source, mapper, cfg=anytime_cfg(), realtime=True, mesh_update_hz=4.0)
+    assert worker.wait_finished(30)
+    snap = worker.slot.get()[1]
+    streaming = [h for done, h in hurried if done < snap.frames_done]
+    assert any(streaming)
+    assert not hurried[-1][1]  # the re-mesh after the stream
+
+
 def test_a_negative_stream_mesh_resolution_is_refused_before_mapping_starts() -> None:
     cfg = anytime_cfg()
     cfg.viewer = replace(cfg.viewer, stream_mesh_resolution=-1)
@@ -525,7 +556,7 @@ class ScriptedJob:
         self.stopped = False
         self.started = threading.Event()
 
-    def run(self, stop: Callable[[], bool], on_pass: Callable[[list, bool], None]) -> None:
+    def run(self, stop: Callable[[], bool], on_pass: Callable[[list, bool], None], hurry: object = None) -> None:
         self.started.set()
         for i in range(self.passes):
             if i and stop():
@@ -642,13 +673,13 @@ class SlowMeshMapper(FakeMapper):
             return job
         inner_run = job.run
 
-        def run(stop: object = None, on_pass: object = None) -> None:
+        def run(stop: object = None, on_pass: object = None, hurry: object = None) -> None:
             start = self._version
             deadline = time.monotonic() + 10
             while self._version < start + self.frames_while_meshing and time.monotonic() < deadline:
                 time.sleep(0.01)
             self.mapped_during.append(self._version - start)
-            inner_run(stop, on_pass)
+            inner_run(stop, on_pass, hurry)
 
         job.run = run  # type: ignore[method-assign]
         return job
@@ -697,11 +728,11 @@ class StepMeshMapper(FakeMapper):
             return job
         inner_run, start = job.run, self.steps_done
 
-        def run(stop: object = None, on_pass: object = None) -> None:
+        def run(stop: object = None, on_pass: object = None, hurry: object = None) -> None:
             deadline = time.monotonic() + 0.5  # the last jobs: no more steps come
             while self.steps_done < start + 6 and time.monotonic() < deadline:
                 time.sleep(0.002)
-            inner_run(stop, on_pass)
+            inner_run(stop, on_pass, hurry)
 
         job.run = run  # type: ignore[method-assign]
         return job

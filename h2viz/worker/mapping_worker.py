@@ -139,7 +139,7 @@ class MappingWorker(CommandServing):
         self._metrics_due = False  # the meshing thread refreshes the metrics at its next publish
         backend = getattr(mapper, "backend", None)  # the mesh thread's kernels run on one core beside mapping's
         serial = None if backend is None else backend.serial_thread
-        self.meshing = MeshThread(self._publish_mesh, lambda: self.settings.mesh_update_hz, serial)
+        self.meshing = MeshThread(self._publish_mesh, lambda: self.settings.mesh_update_hz, serial, self._frames_wait)
         self._recorder: Any = None  # a BackgroundRecorder while the run is recorded
         self._gt: Any = None
         self._fatal: BaseException | None = None
@@ -564,6 +564,11 @@ class MappingWorker(CommandServing):
         if self._steps:
             requests.settle(self._steps.popleft(), stats)
             self._feed.hold(self._paused and not self._steps)
+
+    def _frames_wait(self) -> bool:
+        """(mesh thread) A real-time stream arrives and frames wait to be integrated: mesh jobs leave out their
+        optional refresh passes (re-evaluating chunks from the newer field), so that integration gets the cores."""
+        return self._streaming() and self._feed.frames_waiting() > 0
 
     def _streaming(self) -> bool:
         """Real-time mode while frames arrive."""

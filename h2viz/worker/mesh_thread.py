@@ -30,7 +30,7 @@ class PassRecord:
 
 
 class MeshThread:
-    """Runs jobs (objects with `run(stop, on_pass)`, `after(older)`, `version`, `field_version`, like
+    """Runs jobs (objects with `run(stop, on_pass, hurry)`, `after(older)`, `version`, `field_version`, like
     `h2viz.mapping.meshing.job.MeshJob`) one at a time; `publish()` is called after passes, no more often than
     `rate_hz()` (<= 0: no limit)."""
 
@@ -39,10 +39,12 @@ class MeshThread:
         publish: Callable[[], None],
         rate_hz: Callable[[], float],
         background: Callable[[], None] | None = None,
+        hurry: Callable[[], bool] | None = None,
     ) -> None:
-        """`background()` runs first on the thread (e.g. `Backend.serial_thread`: kernels on one core)."""
+        """`background()` runs first on the thread (e.g. `Backend.serial_thread`: kernels on one core); while
+        `hurry()` is true, jobs skip their optional refresh passes (mapping needs the cores)."""
         self._publish, self._rate_hz = publish, rate_hz
-        self._background = background
+        self._background, self._hurry = background, hurry
         self._cond = threading.Condition()
         self._pending: tuple[Any, float] | None = None  # (job, submitted at)
         self._running = False
@@ -142,7 +144,7 @@ class MeshThread:
             self._flush()
 
         try:
-            job.run(stop=self._has_pending, on_pass=on_pass)
+            job.run(stop=self._has_pending, on_pass=on_pass, hurry=self._hurry)
         except Exception as e:  # keep meshing later jobs; the failed chunks are retried when next dirty
             log.exception("mesh extraction failed")
             self.errors.append(f"mesh extraction failed: {type(e).__name__}: {e}")

@@ -315,7 +315,7 @@ class FakeMeshJob:
     def __init__(self, mapper: FakeMapper, parts: dict[tuple[int, int, int], np.ndarray], version: int) -> None:
         self.mapper, self.parts, self.version, self.field_version = mapper, parts, version, version
 
-    def run(self, stop: object = None, on_pass: object = None) -> None:
+    def run(self, stop: object = None, on_pass: object = None, hurry: object = None) -> None:
         m = self.mapper
         m.mesh_calls += 1
         chunks = dict(m._chunks)

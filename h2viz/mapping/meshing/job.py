@@ -149,10 +149,13 @@ class MeshJob:
     support: ObservedSupport | None = None  # faces away from observed depth are left out (None: all kept)
 
     def run(
-        self, stop: Callable[[], bool] | None = None, on_pass: Callable[[list[ChunkKey], bool], None] | None = None
+        self,
+        stop: Callable[[], bool] | None = None,
+        on_pass: Callable[[list[ChunkKey], bool], None] | None = None,
+        hurry: Callable[[], bool] | None = None,
     ) -> dict[ChunkKey, MeshChunk]:
-        """Mesh new voxels, then (within the budget and until `stop()`) dirty voxels and stale chunks; see
-        ChunkedMesher.update. Returns every chunk."""
+        """Mesh new voxels, then (within the budget, until `stop()` and while `hurry()` is not true) dirty voxels
+        and stale chunks; see ChunkedMesher.update. Returns every chunk."""
         return self.mesher.update(
             self.voxel_coords,
             None if self.whole else (),
@@ -166,6 +169,7 @@ class MeshJob:
             stop=stop,
             on_pass=on_pass,
             keep_fn=None if self.support is None else self.support.contains,
+            hurry=hurry,
         )
 
     def after(self, older: MeshJob) -> MeshJob:

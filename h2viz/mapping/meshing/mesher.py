@@ -147,6 +147,7 @@ class ChunkedMesher:
         stop: Callable[[], bool] | None = None,
         on_pass: Callable[[list[ChunkKey], bool], None] | None = None,
         keep_fn: KeepFn | None = None,
+        hurry: Callable[[], bool] | None = None,
     ) -> dict[ChunkKey, MeshChunk]:
         """Mesh the voxels (V,3); returns every non-empty chunk (those not re-meshed are the same objects).
 
@@ -155,7 +156,7 @@ class ChunkedMesher:
         chunks with `dirty_voxels` (V,) bool, most first (those voxels' points), and chunks evaluated whole
         longest ago from a field older than `field_version` (every point). Work stops between passes when
         `stop()` is true (a newer update is waiting; chunks left out stay as they are and count as changed or
-        stale next time).
+        stale next time), and the optional refresh also while `hurry()` is true (another thread needs the cores).
 
         `voxel_ids` (V,) are what sdf_fn receives with the points (default: row numbers); `on_pass(keys,
         required)` runs after each pass of chunks has been swapped in; `keep_fn` (face centroids (M,3) -> (M,)
@@ -179,7 +180,7 @@ class ChunkedMesher:
         deadline = time.perf_counter() + refresh_s
         whole = {k for k, mode in required if mode is Eval.WHOLE}
         for items in job.passes(self._optional(job, whole), refresh=True) if job.faces.enabled else ():
-            if time.perf_counter() >= deadline or stopped():
+            if time.perf_counter() >= deadline or stopped() or (hurry is not None and hurry()):
                 break
             self._remesh(items, job, on_pass, False)
         return dict(self._chunks)

@@ -448,6 +448,38 @@ def test_stale_chunks_are_refreshed_oldest_first_until_stopped(monkeypatch: pyte
     assert 0 < mesher.stale(4) < n  # one pass, then stopped
 
 
+def test_refresh_passes_wait_while_another_thread_hurries_but_new_voxels_are_meshed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import h2viz.mapping.meshing.passes as passes
+
+    monkeypatch.setattr(passes, "REFRESH_POINTS_PER_PASS", 2000)  # a few chunks a pass
+    voxels = plane_voxels()
+    grown = np.concatenate([voxels, voxels[:1] + [0, 0, 40]])  # one voxel in a chunk of its own
+    mesher = ChunkedMesher(VS, 4, 4)
+    mesher.update(voxels, None, plane_sdf, position_color, 1, field_version=1)
+    n = len(mesher.chunks_of(voxels))
+    asked: list[bool] = []
+    meshed: list[tuple[list, bool]] = []
+    mesher.update(
+        grown,
+        [],
+        plane_sdf,
+        position_color,
+        2,
+        field_version=2,
+        refresh_s=60.0,
+        on_pass=lambda k, r: meshed.append((k, r)),
+        hurry=lambda: asked.append(True) or True,
+    )
+    assert asked and [r for _, r in meshed] == [True]  # the new voxel's chunk only: no refresh pass
+    assert meshed[0][0] == sorted(mesher.chunks_of(grown[-1:]))
+    assert mesher.stale(2) == n
+    hurried = iter([False, False, True])  # a frame arrives after two refresh passes
+    mesher.update(grown, [], plane_sdf, position_color, 3, field_version=2, refresh_s=60.0, hurry=lambda: next(hurried))
+    assert 0 < mesher.stale(2) < n
+
+
 def test_other_threads_always_read_a_complete_chunk_dict() -> None:
     import threading
 
