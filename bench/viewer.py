@@ -659,6 +659,10 @@ def main() -> None:
                 runs.append(run)
                 feed = worker._feed  # real-time mode: frames the stream delivered that were not integrated
                 dropped = f" ({feed.passed_over} read too late, {feed.overflowed} beyond the backlog)"
+                mapped = {s.index for s in worker.slot.get()[1].stats}
+                if mapped and len(mapped) < len(worker.source.frames):  # type: ignore[attr-defined]
+                    missing = [i for i in range(len(worker.source.frames)) if i not in mapped]  # type: ignore[attr-defined]
+                    dropped += f"; not integrated: frames {ranges(missing)}"
                 print(f"{run.label}: {run.frames} frames mapped in {run.mapping_s:.1f} s{dropped}", file=sys.stderr)
                 if not renders and not args.no_renders:
                     renders = render_times(worker)
