@@ -257,6 +257,17 @@ def test_while_a_realtime_stream_arrives_metrics_are_refreshed_off_the_mapping_t
         refresh(voxel_coords)  # type: ignore[arg-type]
 
     worker._refresh_metrics = recorded  # type: ignore[method-assign]
+    published_first: list[bool] = []  # at each refresh by the mesh thread: the slot already holds the new chunks
+
+    def recorded_on_mesh_thread(voxel_coords: object = None) -> None:
+        if threading.current_thread().name == "h2viz-meshing":
+            shown = worker.slot.get()[1].chunks
+            published_first.append(
+                {k: id(c) for k, c in shown.items()} == {k: id(c) for k, c in mapper.mesh_chunks().items()}
+            )
+        recorded(voxel_coords)
+
+    worker._refresh_metrics = recorded_on_mesh_thread  # type: ignore[method-assign]
     seen: list[float] = []  # comp ratios of snapshots published while the stream arrived
     deadline = time.monotonic() + 20
     snap = None
@@ -268,6 +279,7 @@ def test_while_a_realtime_stream_arrives_metrics_are_refreshed_off_the_mapping_t
     assert worker.wait_finished(20)
     assert seen and all(0 < c <= 100 for c in seen)
     assert "h2viz-meshing" in threads  # refreshed by the mesh thread while streaming ...
+    assert published_first and all(published_first)  # ... after publishing the chunks, which never wait for them
     assert worker.slot.get()[1].metrics["comp_ratio"] > 0  # ... and once more at the end
 
 

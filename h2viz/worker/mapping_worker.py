@@ -660,20 +660,25 @@ class MappingWorker(CommandServing):
                 self._recorder.offer(snap)
 
     def _publish_mesh(self) -> None:
-        """(mesh thread) The last snapshot again with the mapper's current chunks (and fresh ground-truth metrics
-        when they are due: off the mapping thread, which a 30 Hz stream keeps busy)."""
+        """(mesh thread) The last snapshot again with the mapper's current chunks, then, when they are due, with
+        fresh ground-truth metrics (off the mapping thread, which a 30 Hz stream keeps busy; after the chunks went
+        out, which would otherwise wait for them)."""
+        self._put_chunks(self.mapper.mesh_chunks())
         last = self._last_snap
         if self._metrics_due and self._gt is not None and last is not None:
             self._metrics_due = False
             self._refresh_metrics(last.voxel_coords)
+            self._put_chunks(self._chunks_out)
+
+    def _put_chunks(self, chunks: dict) -> None:
+        """(mesh thread) Publish the last snapshot with `chunks` and the current metrics."""
         with self._publish_lock:
-            self._chunks_out = self.mapper.mesh_chunks()
+            self._chunks_out = chunks
             if self._last_snap is None:
                 return
             self._version += 1
-            self._last_snap = replace(
-                self._last_snap, version=self._version, chunks=self._chunks_out, metrics=dict(self._metrics)
-            )
+            snap = replace(self._last_snap, version=self._version, chunks=chunks, metrics=dict(self._metrics))
+            self._last_snap = snap
             self.slot.put(self._last_snap)
             if self._recorder is not None:
                 self._recorder.offer(self._last_snap)
