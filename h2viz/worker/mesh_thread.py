@@ -55,7 +55,7 @@ class MeshThread:
         self._required_since: float | None = None  # submission (monotonic) of the running job while on required passes
         self._next_publish = 0.0  # time.monotonic() from which publishing is allowed again
         self.passes: deque[PassRecord] = deque(maxlen=10_000)
-        self.published: deque[float] = deque(maxlen=10_000)  # time.time() of each publish (for measurements)
+        self.published: deque[float] = deque(maxlen=10_000)  # time.time() each publish began (for measurements)
         self.errors: list[str] = []
         self.busy_s = 0.0  # seconds spent running jobs
         self._thread = threading.Thread(target=self._run, name="h2viz-meshing", daemon=True)
@@ -182,8 +182,9 @@ class MeshThread:
             self._unpublished = self._unpublished_required = False
             self._next_publish = time.monotonic() + self._period()
         try:
+            started = time.time()
             self._publish()
-            self.published.append(time.time())
+            self.published.append(started)
         except Exception:
             log.exception("publishing the mesh failed")
         with self._cond:
