@@ -198,7 +198,7 @@ def test_the_last_frames_of_a_realtime_stream_are_meshed_at_the_stream_resolutio
     mapper.mesh_job = recorded_job  # type: ignore[method-assign]
     cfg = anytime_cfg()
     cfg.viewer = replace(cfg.viewer, live_mesh_resolution=4, stream_mesh_resolution=3)
-    worker = make_worker(source, mapper, cfg=cfg, realtime=True, mesh_update_hz=0.2)
+    worker = make_worker(source, mapper, cfg=cfg, realtime=True, mesh_update_hz=0.5)  # next job due after the end
     assert worker.wait_finished(20)
     ends = [job for job in jobs if job[0] == 20]
     assert ends[:2] == [(20, 3, False), (20, 4, True)]  # the last frames' own job first, then the whole map
