@@ -270,21 +270,29 @@ class Wire:
 
     def sent(self, key: Key, version: int) -> float | None:
         """When the dashboard first sent chunk `key` at `version` (or newer), or dropped it from the scene."""
-        sent = next((t for t, chunks in self.sends if chunks.get(key, -1) >= version), None)
-        gone = next((t for t, newest, keys in self.shown if newest >= version and key not in keys), None)
-        return gone if gone is not None and (sent is None or gone < sent) else sent
+        first = self._sent_or_dropped(key, version)
+        return None if first is None else first[0]
 
     def arrival(self, key: Key, version: int) -> tuple[float, int] | None:
         """(time, bytes) the browser first received chunk `key` at `version` (or a newer one); for a chunk
         meshed empty (the mesher drops it) there is nothing to receive: the time the scene was updated without it."""
-        sent = [t for t, chunks in self.sends if chunks.get(key, -1) >= version]
-        gone = next((t for t, newest, keys in self.shown if newest >= version and key not in keys), None)
-        if gone is not None and (not sent or gone < sent[0]):
-            return gone, 0  # meshed empty: the scene dropped the chunk (or never had it), nothing to receive
-        if not sent:
+        first = self._sent_or_dropped(key, version)
+        if first is None:
             return None
+        t_sent, dropped = first
+        if dropped:
+            return t_sent, 0  # meshed empty: the scene dropped the chunk (or never had it), nothing to receive
         name = node_name(key)
-        return next(((t, b) for t, n, b in self.arrivals if n == name and t >= sent[0] - 0.01), None)
+        return next(((t, b) for t, n, b in self.arrivals if n == name and t >= t_sent - 0.01), None)
+
+    def _sent_or_dropped(self, key: Key, version: int) -> tuple[float, bool] | None:
+        """(time, dropped): the dashboard's first send of chunk `key` at `version` or newer, or (dropped) the
+        scene update without it when that came first; None when neither happened."""
+        sent = next((t for t, chunks in self.sends if chunks.get(key, -1) >= version), None)
+        gone = next((t for t, newest, keys in self.shown if newest >= version and key not in keys), None)
+        if gone is not None and (sent is None or gone < sent):
+            return gone, True
+        return None if sent is None else (sent, False)
 
 
 def node_name(key: Key) -> str:

@@ -288,9 +288,7 @@ class MappingWorker(CommandServing):
         self._resolve_steps(None)
         if self.settings.realtime:
             self._close_newest()
-            if self.live and self._unmeshed:  # the last frames' own job, at the stream's mesh resolution: after
-                self.meshing.wait_idle()  # the stream every chunk is re-meshed at the live one, which takes longer
-                self._submit_mesh(0.0)
+            self._mesh_unmeshed()  # while the stream's mesh resolution holds (then every chunk at the live one)
             self._phase = Phase.SHARPENING.value
             self._plateau.reset()
             self._autosave_stream_end()
@@ -606,12 +604,16 @@ class MappingWorker(CommandServing):
         """Re-mesh every chunk from the field now and publish it (waits for the mesh thread). The job still
         running finishes first, and frames not yet meshed get a job of their own: otherwise the last frames' changes
         would reach the browsers only with the whole map."""
-        self.meshing.wait_idle()
-        if self._unmeshed and self.live:  # frames that ended while it ran: their own (small) job first
-            self._submit_mesh(0.0)
-            self.meshing.wait_idle()
+        self._mesh_unmeshed()
         self._submit_mesh(0.0, whole=True)
         self.meshing.wait_idle()
+
+    def _mesh_unmeshed(self) -> None:
+        """After the running job, the frames integrated since the last job get their own (small) one; waits for it."""
+        self.meshing.wait_idle()
+        if self._unmeshed and self.live:
+            self._submit_mesh(0.0)
+            self.meshing.wait_idle()
 
     def _refresh_metrics(self, voxel_coords: np.ndarray | None = None) -> None:
         """Ground-truth metrics of the mesh as it is now (the live chunks, no re-meshing), the ground truth culled
@@ -679,6 +681,6 @@ class MappingWorker(CommandServing):
             self._version += 1
             snap = replace(self._last_snap, version=self._version, chunks=chunks, metrics=dict(self._metrics))
             self._last_snap = snap
-            self.slot.put(self._last_snap)
+            self.slot.put(snap)
             if self._recorder is not None:
-                self._recorder.offer(self._last_snap)
+                self._recorder.offer(snap)
