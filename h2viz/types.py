@@ -138,6 +138,7 @@ class MapSnapshot:
     refined: int = 0  # refinement steps run so far
     phase: str = ""  # real-time mode: streaming | sharpening | settled (h2viz.mapping.anytime.Phase); "" otherwise
     opt_steps: int = 0  # real-time mode: optimisation steps so far (between frames and after the stream)
+    preparing: tuple[int, int] | None = None  # (done, total) frames the source prepares before real-time playback
 
 
 class RenderMode(str, Enum):

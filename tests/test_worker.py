@@ -360,6 +360,43 @@ def test_realtime_mode_passes_over_overdue_frames_without_reading_them(make_work
     assert snap.stats[-1].index == 119
 
 
+class RenderedRoomSource(SlowRoomSource):
+    """A slow reader (0.1 s a frame) until `prepare_playback` has prepared a frame, like the synthetic room
+    before it has rendered a frame into its cache."""
+
+    def __init__(self, n: int) -> None:
+        super().__init__(n=n)
+        self.prepared: set[int] = set()
+        self.asked: list[list[int]] = []
+
+    def prepare_playback(self, keys, progress=None, stop=None) -> None:  # noqa: ANN001
+        self.asked.append([int(k) for k in keys])
+        for done, key in enumerate(keys, 1):
+            time.sleep(0.01)
+            self.prepared.add(int(key))
+            if progress is not None:
+                progress(done, len(keys))
+
+    def load(self, position: int, key: object) -> RgbdFrame:
+        if int(key) in self.prepared:  # type: ignore[call-overload]
+            self.loaded.append(int(key))  # type: ignore[call-overload]
+            return BoxRoomSource.load(self, position, key)  # type: ignore[arg-type]
+        return super().load(position, key)
+
+
+def test_realtime_playback_has_the_source_prepare_the_frames_it_will_play_before_its_clock_starts(
+    make_worker: Factory,
+) -> None:
+    source = RenderedRoomSource(n=90)  # 3 s of stream; unprepared, reading it would take 9 s
+    worker = make_worker(source, FakeMapper(), cfg=anytime_cfg(backlog_frames=4), realtime=True)
+    seen: list[tuple[int, int]] = []
+    snap = wait_for(worker, lambda s: seen.append(s.preparing) or s.finished, 40)  # type: ignore[func-returns-value]
+    assert source.asked == [list(range(90))]  # once, every frame still to play
+    progress = [p for p in seen if p is not None]
+    assert progress and all(total == 90 for _, total in progress) and seen[-1] is None  # shown, then cleared
+    assert snap.frames_done == 90 and snap.dropped == 0 and worker._feed.passed_over == 0
+
+
 def test_a_late_reader_still_delivers_every_frame_within_the_backlog(make_worker: Factory) -> None:
     source = SlowRoomSource(n=20)  # ...while a reader less than a backlog behind reads them all
     worker = make_worker(source, FakeMapper(), cfg=anytime_cfg(backlog_frames=30), realtime=True)

@@ -63,6 +63,17 @@ class FrameSource(ABC):
     def describe(self) -> str:
         return f"{self.format_name} {self.cfg.path}"
 
+    def prepare_playback(
+        self,
+        keys: Sequence[Hashable],
+        progress: Callable[[int, int], None] | None = None,
+        stop: Callable[[], bool] | None = None,
+    ) -> None:
+        """Before real-time playback of the frames of `keys`: make them readable at the stream's rate where reading
+        one is slower than that (the synthetic room renders those it has not cached). `progress(done, total)`
+        reports the work; `stop()` ends it early. Sources that read files have nothing to do."""
+        return None
+
     # -- common behaviour --------------------------------------------------------------------------
     def selected(self) -> list[tuple[int, Hashable]]:
         """(position, key) pairs after stride and max_frames."""

@@ -40,7 +40,10 @@ def progress_markdown(snap: MapSnapshot) -> str:
         state += f", {snap.refine_left} refinement steps queued"
     elif snap.refined:
         state += f", refined {snap.refined} steps"
-    if snap.phase and not snap.paused:
+    if snap.preparing is not None:
+        done, n = snap.preparing
+        state += f" (real time: rendering the frames to play, {done} / {n}; once, they are cached)"
+    elif snap.phase and not snap.paused:
         state += f" (real time: {PHASE_TEXT.get(snap.phase, snap.phase)})"
     total = snap.frames_total if snap.frames_total is not None else "?"
     rows = [

@@ -1,6 +1,8 @@
 """The worker's live settings and the frame feed: a reader thread that loads frames ahead of the
 mapper, either every frame in order or, in real-time mode, each frame at the stream's own rate (every one kept
-until it is integrated, up to a backlog; frames beyond it, and those a slow reader passes over, are counted)."""
+until it is integrated, up to a backlog; frames beyond it, and those a slow reader passes over, are counted).
+Before real-time playback starts, the source prepares the frames it will play (the synthetic room renders them
+once)."""
 
 from __future__ import annotations
 
@@ -65,6 +67,8 @@ class FrameFeed:
         self.passed_over = 0  # real-time mode: due before the reader got to them (a slow source)
         self.overflowed = 0  # real-time mode: pushed out of a full backlog (integration fell behind)
         self.read = 0  # frames read or skipped so far
+        self.preparing: tuple[int, int] | None = None  # (done, total) while the source prepares real-time playback
+        self._prepared_stride = 0  # the stride real-time playback was prepared for (0: not prepared)
         self._position = 0
         self._pass_mapped(start_after)
         self._thread = threading.Thread(target=self._run, name="h2viz-frames", daemon=True)
@@ -125,6 +129,8 @@ class FrameFeed:
             while self._position < len(self._items) and not self._stop.is_set():
                 if 0 < self._max_frames <= self.read:
                     break
+                if self._prepare_playback():
+                    clock = None  # the stream's clock starts after the preparation
                 overdue = self._overdue(clock)  # behind the stream's clock: the next frame is due already
                 item = self._items[self._position]
                 self._position += max(1, self._settings.stride)
@@ -142,6 +148,28 @@ class FrameFeed:
         with self._cond:
             self._frames.append(END)
             self._cond.notify_all()
+
+    def _prepare_playback(self) -> bool:
+        """Real-time mode, once per stride: have the source make the frames still to be played readable at the
+        stream's rate (`FrameSource.prepare_playback`; `preparing` says how far it is). True when it prepared."""
+        stride = max(1, self._settings.stride)
+        if not self._settings.realtime or self._prepared_stride == stride:
+            return False
+        self._prepared_stride = stride
+        keys = [key for _, key in self._items[self._position :: stride]]
+        if self._max_frames > 0:
+            keys = keys[: max(0, self._max_frames - self.read)]
+
+        def progress(done: int, total: int) -> None:
+            self.preparing = (done, total)
+
+        try:
+            self._source.prepare_playback(keys, progress, self._stop.is_set)
+        except Exception:  # frames are then read as the stream goes: slower, never lost silently
+            log.exception("preparing real-time playback failed; frames are read as they are due")
+        finally:
+            self.preparing = None
+        return True
 
     def _overdue(self, clock: tuple[float, float] | None) -> bool:
         """Real-time playback whose reading fell behind (a slow source, or a rendered one): when the frame a whole

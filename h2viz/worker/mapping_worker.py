@@ -312,6 +312,8 @@ class MappingWorker(CommandServing):
             self._sharpen_slice()
             return
         item = self._feed.take(0.05 if action is not Action.INTEGRATE else 0.0)
+        if item is None and self._feed.preparing != (self._last_snap.preparing if self._last_snap else None):
+            self._publish()  # the source's preparation went on (the progress panel shows it)
         if item is END:
             self._end_stream()
         elif item is not None and item.index > self._resume_after:
@@ -655,6 +657,7 @@ class MappingWorker(CommandServing):
                 refined=self._refined,
                 phase=self._phase,
                 opt_steps=self._opt_steps,
+                preparing=self._feed.preparing,
             )
             self._last_snap = snap
             self.slot.put(snap)

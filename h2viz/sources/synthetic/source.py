@@ -2,15 +2,19 @@
 camera that circles the room centre, rendered by ray casting with exact z-depth.
 
 Everything is deterministic from `source.synthetic.seed`: the room, its textures, the trajectory and
-the depth noise (seeded per frame). Frames can be rendered ahead in a background thread; iterating
-the source yields exactly the same frames either way.
+the depth noise (seeded per frame). Frames can be rendered ahead in a background thread, and rendered
+frames are kept on disk (frame_cache.py): iterating the source yields exactly the same frames either way.
+Real-time playback has the frames it will play rendered first (`prepare_playback`), so that the room
+plays at 30 Hz like a camera.
 """
 
 from __future__ import annotations
 
+import logging
+import os
 import threading
-from collections.abc import Hashable, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable, Hashable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -19,11 +23,13 @@ import trimesh
 from h2viz.config import SourceConfig
 from h2viz.errors import FrameError, SourceError
 from h2viz.sources.base import FrameSource
+from h2viz.sources.synthetic.frame_cache import FrameCache
 from h2viz.sources.synthetic.scene import Scene, build_scene
 from h2viz.sources.synthetic.trajectory import trajectory
 from h2viz.types import RgbdFrame
 
 FPS = 30.0  # timestamps are frame index / FPS
+log = logging.getLogger("h2viz.sources")
 
 
 def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
@@ -50,6 +56,7 @@ class SyntheticSource(FrameSource):
         self.scene: Scene = build_scene(sc.seed, sc.recipe)
         self.K = intrinsics(sc.width, sc.height, sc.fov_deg)
         self.poses = trajectory(self.scene, sc.n_frames)  # (n,4,4)
+        self.cache = FrameCache.for_config(sc)  # None: source.synthetic.cache is off
         self._pending: dict[int, Future[RgbdFrame]] = {}
         self._expected: int | None = None  # the key a sequential reader asks for next
         self._pool: ThreadPoolExecutor | None = None
@@ -82,7 +89,7 @@ class SyntheticSource(FrameSource):
     def render_frame(self, index: int) -> RgbdFrame:
         """Frame `index` of the trajectory, with the configured depth noise (seeded by seed and index)."""
         sc = self.cfg.synthetic
-        rgb, depth = self.scene.render(self.K, self.poses[index], sc.height, sc.width)
+        rgb, depth = self._rendered(index)
         if sc.depth_noise_m > 0:
             rng = np.random.default_rng([sc.seed, index])
             valid = depth > 0
@@ -97,6 +104,51 @@ class SyntheticSource(FrameSource):
             T_world_camera=self.poses[index].copy(),
             name=f"synthetic frame {index}",
         )
+
+    def _rendered(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """The noise-free rgb (H,W,3) uint8 and depth (H,W) float32 of frame `index`: from the cache, else rendered
+        (and cached)."""
+        cached = self.cache.get(index) if self.cache is not None else None
+        if cached is not None:
+            return cached
+        sc = self.cfg.synthetic
+        rgb, depth = self.scene.render(self.K, self.poses[index], sc.height, sc.width)
+        if self.cache is not None:
+            self.cache.put(index, rgb, depth)
+        return rgb, depth
+
+    def prepare_playback(
+        self,
+        keys: Sequence[Hashable],
+        progress: Callable[[int, int], None] | None = None,
+        stop: Callable[[], bool] | None = None,
+    ) -> None:
+        """Render the frames of `keys` not cached yet (on every core), so that real-time playback reads each in a few
+        milliseconds instead of rendering it in ~0.2 s, which would pass over most of a 30 Hz stream. Nothing to do
+        once they are cached, or when the cache is off or cannot be written (frames are then rendered as read)."""
+        cache = self.cache
+        if cache is None or not cache.writable:
+            return
+        missing = [k for k in keys if isinstance(k, int) and 0 <= k < len(self.poses) and not cache.has(k)]
+        if not missing:
+            return
+        log.info("rendering %d synthetic frames for real-time playback, once: cached in %s", len(missing), cache.folder)
+        done = 0
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="h2viz-synthetic") as pool:
+            pending = [pool.submit(self._render_missing, k, stop) for k in missing]
+            for future in as_completed(pending):
+                future.result()
+                done += 1
+                if progress is not None:
+                    progress(done, len(missing))
+                if stop is not None and stop():
+                    for f in pending:
+                        f.cancel()
+                    break
+
+    def _render_missing(self, index: int, stop: Callable[[], bool] | None) -> None:
+        if (stop is None or not stop()) and self.cache is not None and not self.cache.has(index):
+            self._rendered(index)
 
     def _prefetch_after(self, key: int) -> None:
         """Start rendering the next `prefetch` selected frames after `key` in the background, while frames are
