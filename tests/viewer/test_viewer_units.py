@@ -232,6 +232,8 @@ def test_panel_text_and_plot_data() -> None:
     assert "| State | refining (40 steps left) |" in progress_markdown(replace(snap, paused=True, refine_left=40))
     assert "| State | mapping, 40 refinement steps queued |" in progress_markdown(replace(snap, refine_left=40))
     assert "| State | finished, refined 500 steps |" in progress_markdown(replace(snap, finished=True, refined=500))
+    preparing = progress_markdown(replace(snap, phase="streaming", preparing=(40, 300)))
+    assert "rendering the frames to play, 40 / 300" in preparing and "optimising between frames" not in preparing
 
 
 def test_both_plots_are_logarithmic() -> None:

@@ -3,11 +3,11 @@
 Ray casting and shading a 640x480 frame takes ~0.2 s of one core: far slower than the 30 Hz camera the room
 stands for. A real-time stream of it (the dashboard's Real-time toggle, `h2viz map --realtime`) would pass over
 most frames, and every run would pay the renderer's CPU beside mapping. Each rendered frame is therefore written
-once to a cache folder and read back (~6 ms) by every later run with the same room, image size and trajectory.
+once to a cache folder and read back (~4 ms) by every later run with the same room, image size and trajectory.
 
 A frame is stored losslessly: the colour (H,W,3) uint8, and the depth's float32 bits differenced twice along
-each row (about zero across a plane) and split into byte planes, each zstd-compressed (0.2-0.45 MB a 640x480
-frame, ~100 MB for the 300 default frames; reading one back takes ~6 ms). The folder's name is a hash of
+each row (about zero across a plane), each zstd-compressed (~0.36 MB a 640x480 frame, ~110 MB for the 300
+default frames; reading one back takes ~4 ms). The folder's name is a hash of
 everything the pixels depend on (the room's seed and recipe, image size, field of view, number of frames, the
 renderer's source code and trimesh's version), so a change to any of them renders afresh. Files are written
 atomically; an unreadable one is rendered again and replaced. Depth noise is added after reading, as after
@@ -33,9 +33,9 @@ from h2viz.sources.synthetic.layout import RECIPE
 
 log = logging.getLogger("h2viz.sources")
 
-FORMAT = 1  # bump when the file layout changes
+FORMAT = 2  # bump when the file layout changes
 MAGIC = b"H2SF"
-HEADER = "<4sIIQ"  # magic, height, width, bytes of compressed colour; then the colour, then the depth planes
+HEADER = "<4sIIQ"  # magic, height, width, bytes of compressed colour; then the colour, then the depth
 LEVEL = 9  # zstd level: ~30 ms to write a frame (rendering it took ~200), ~3 ms to read it back
 ENV_DIR = "H2VIZ_CACHE_DIR"  # overrides the user cache folder (tests point it at a temporary one)
 _CODE = (*sorted(Path(__file__).parent.glob("*.py")), Path(__file__).parents[2] / "geometry.py")
@@ -94,14 +94,14 @@ class FrameCache:
             start = struct.calcsize(HEADER)
             unpack = zstandard.ZstdDecompressor().decompress
             rgb = np.frombuffer(unpack(blob[start : start + n_rgb]), np.uint8).reshape(h, w, 3).copy()
-            planes = np.frombuffer(unpack(blob[start + n_rgb :]), np.uint8).reshape(4, h, w)
+            second = np.frombuffer(unpack(blob[start + n_rgb :]), np.uint32).reshape(h, w)
         except FileNotFoundError:
             return None
         except Exception as e:  # truncated, corrupt or from another layout: render it again
             log.info("cached synthetic frame %s cannot be read (%s); rendering it again", path, e)
             return None
-        second = np.ascontiguousarray(planes.transpose(1, 2, 0)).view(np.uint32)[..., 0]  # (H,W)
-        bits = np.cumsum(np.cumsum(second, axis=1, dtype=np.uint32), axis=1, dtype=np.uint32)  # mod 2^32: exact
+        bits = np.cumsum(second, axis=1, dtype=np.uint32)
+        np.cumsum(bits, axis=1, dtype=np.uint32, out=bits)  # mod 2^32: exactly the bits written
         return rgb, bits.view(np.float32)
 
     def put(self, index: int, rgb: np.ndarray, depth: np.ndarray) -> None:
@@ -112,10 +112,9 @@ class FrameCache:
         bits = np.ascontiguousarray(depth, dtype=np.float32).view(np.uint32)  # (H,W)
         first = np.diff(bits, axis=1, prepend=np.uint32(0))  # wraps mod 2^32, exact once summed back
         second = np.diff(first, axis=1, prepend=np.uint32(0))  # ~0 along planes: depth is linear in x there
-        planes = second[..., None].view(np.uint8).transpose(2, 0, 1)  # (4,H,W) one byte of each value a plane
         pack = zstandard.ZstdCompressor(level=LEVEL).compress
         rgb_z = pack(np.ascontiguousarray(rgb, np.uint8).tobytes())
-        depth_z = pack(np.ascontiguousarray(planes).tobytes())
+        depth_z = pack(second.tobytes())
         header = struct.pack(HEADER, MAGIC, *self.shape, len(rgb_z))
         path = self.path(index)
         tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp")
