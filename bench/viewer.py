@@ -348,17 +348,23 @@ def mapping_run(
     background: bool = False,
     remote: bool = False,
     autosave_dir: Path | None = None,
+    read_frames: bool = False,
 ) -> tuple[Run, MappingWorker, Dashboard, Any]:
     """Map with the dashboard and `n_browsers` pages open. With `record`, page 0's websocket frames are
     shipped to this process and decoded to time mesh arrivals: that costs both cores real CPU, so speed is
     measured in runs without it. `background` gives the browsers the lowest CPU priority (see --browser-background);
     `remote` connects `n_browsers` REMOTE_CLIENT processes instead of browsers; `autosave_dir`: autosaves go there,
-    as the app's go to its run folder (None: none)."""
+    as the app's go to its run folder (None: none); `read_frames`: the source reads each frame as the app's does (the
+    synthetic room from its frame cache) instead of taking it from memory."""
     from h2viz.mapping.mapper import Mapper
 
     run, wire = Run(n_browsers, recorded=record, background=background, remote=remote), Wire()
-    source = Preloaded(cfg)
-    cfg = dataclasses.replace(cfg, source=source.cfg)  # every preloaded frame, in order
+    source: FrameSource
+    if read_frames:
+        source = make_source(cfg.source)
+    else:
+        source = Preloaded(cfg)
+        cfg = dataclasses.replace(cfg, source=source.cfg)  # every preloaded frame, in order
     worker = MappingWorker(source, Mapper(cfg.mapping), cfg, autosave_dir=autosave_dir)
     dashboard = Dashboard(worker, cfg, port=0)
     dashboard.layers.mesh.set_enabled(not hide_mesh)
@@ -631,6 +637,12 @@ def main() -> None:
         help="autosave (autosave.*) into a temporary folder, as the app does into its run folder",
     )
     parser.add_argument(
+        "--read-frames",
+        action="store_true",
+        help="the source reads each frame as the app's does (the synthetic room from its frame cache, rendering the "
+        "frames not cached before a real-time stream starts) instead of taking it from memory",
+    )
+    parser.add_argument(
         "--config", default=str(ROOT / "configs" / "fast.yaml"), help="config file over the defaults ('' = none)"
     )
     parser.add_argument("overrides", nargs="*", help="config overrides, e.g. mapping.optimization.max_iters=5")
@@ -661,16 +673,22 @@ def main() -> None:
                 n, record, remote = step
                 folder = Path(tempfile.mkdtemp(prefix="h2viz-bench-")) if args.autosave else None
                 run, worker, dashboard, browser = mapping_run(
-                    cfg_of(), n, playwright, args.hide_mesh, record, args.browser_background, remote, folder
+                    cfg_of(), n, playwright, args.hide_mesh, record, args.browser_background, remote, folder,
+                    args.read_frames,
                 )
                 run.repeat = repeat
                 runs.append(run)
                 feed = worker._feed  # real-time mode: frames the stream delivered that were not integrated
                 dropped = f" ({feed.passed_over} read too late, {feed.overflowed} beyond the backlog)"
                 mapped = {s.index for s in worker.slot.get()[1].stats}
-                if mapped and len(mapped) < len(worker.source.frames):  # type: ignore[attr-defined]
-                    missing = [i for i in range(len(worker.source.frames)) if i not in mapped]  # type: ignore[attr-defined]
-                    dropped += f"; not integrated: frames {ranges(missing)}"
+                source = worker.source
+                played = (
+                    [f.index for f in source.frames]
+                    if isinstance(source, Preloaded)
+                    else [int(k) for _, k in source.selected()]  # type: ignore[call-overload]
+                )
+                if mapped and len(mapped) < len(played):
+                    dropped += f"; not integrated: frames {ranges([i for i in played if i not in mapped])}"
                 print(f"{run.label}: {run.frames} frames mapped in {run.mapping_s:.1f} s{dropped}", file=sys.stderr)
                 if not renders and not args.no_renders:
                     renders = render_times(worker)

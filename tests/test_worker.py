@@ -19,6 +19,7 @@ from h2viz.errors import ConfigError, H2vizError
 from h2viz.sources.base import make_source
 from h2viz.types import KeyframeState, RgbdFrame
 from h2viz.worker import LatestSlot, MappingWorker, RenderedView, WorkerSettings
+from h2viz.worker.feed import FrameFeed
 from h2viz.worker.mesh_thread import MeshThread
 from h2viz.worker.requests import scaled_intrinsics
 from tests.viewer.fakes import (
@@ -372,6 +373,8 @@ class RenderedRoomSource(SlowRoomSource):
     def prepare_playback(self, keys, progress=None, stop=None) -> None:  # noqa: ANN001
         self.asked.append([int(k) for k in keys])
         for done, key in enumerate(keys, 1):
+            if stop is not None and stop():
+                return
             time.sleep(0.01)
             self.prepared.add(int(key))
             if progress is not None:
@@ -395,6 +398,25 @@ def test_realtime_playback_has_the_source_prepare_the_frames_it_will_play_before
     progress = [p for p in seen if p is not None]
     assert progress and all(total == 90 for _, total in progress) and seen[-1] is None  # shown, then cleared
     assert snap.frames_done == 90 and snap.dropped == 0 and worker._feed.passed_over == 0
+
+
+def test_switching_realtime_off_ends_the_preparation_and_switching_it_on_prepares_what_is_left() -> None:
+    source, settings = RenderedRoomSource(n=60), WorkerSettings(realtime=True)
+    feed = FrameFeed(source, settings, 0, backlog=4)
+    feed.start()
+    try:
+        deadline = time.monotonic() + 10
+        while (feed.preparing is None or feed.preparing[0] < 5) and time.monotonic() < deadline:
+            time.sleep(0.002)
+        settings.realtime = False  # every-frame mode: frames are read as mapping takes them
+        taken = [feed.take(5.0).index for _ in range(3)]
+        assert len(source.asked) == 1 and len(source.prepared) < 30 and feed.preparing is None
+        settings.realtime = True
+        while len(source.asked) < 2 and time.monotonic() < deadline:
+            feed.take(0.05)
+        assert len(source.asked) == 2 and source.asked[1][0] > taken[-1] and source.asked[1][-1] == 59
+    finally:
+        feed.stop()
 
 
 def test_a_late_reader_still_delivers_every_frame_within_the_backlog(make_worker: Factory) -> None:

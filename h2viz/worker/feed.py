@@ -163,12 +163,17 @@ class FrameFeed:
         def progress(done: int, total: int) -> None:
             self.preparing = (done, total)
 
+        def stop() -> bool:  # the feed stops, or real-time mode was switched off (prepared again when back on)
+            return self._stop.is_set() or not self._settings.realtime
+
         try:
-            self._source.prepare_playback(keys, progress, self._stop.is_set)
+            self._source.prepare_playback(keys, progress, stop)
         except Exception:  # frames are then read as the stream goes: slower, never lost silently
             log.exception("preparing real-time playback failed; frames are read as they are due")
         finally:
             self.preparing = None
+        if not self._settings.realtime:
+            self._prepared_stride = 0
         return True
 
     def _overdue(self, clock: tuple[float, float] | None) -> bool:
