@@ -399,7 +399,7 @@ def mapping_run(
     t0, cpu0, frames0 = time.time(), cpu_seconds(), drawn()
     worker.start()
     next_check = 0.0
-    while len(worker.mapped_at) < len(source.frames) and not worker.wait_finished(0.05):
+    while len(worker.mapped_at) < len(source) and not worker.wait_finished(0.05):
         if background and time.time() > next_check:  # and the threads the browsers started since
             background_browsers(os.getpid())
             next_check = time.time() + 1.0
