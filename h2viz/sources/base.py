@@ -22,6 +22,8 @@ if TYPE_CHECKING:
     import trimesh
 
 log = logging.getLogger("h2viz.sources")
+Progress = Callable[[int, int], None] | None  # progress(done, total)
+StopCheck = Callable[[], bool] | None  # True: end the work early
 
 
 @dataclass(frozen=True)
@@ -63,12 +65,7 @@ class FrameSource(ABC):
     def describe(self) -> str:
         return f"{self.format_name} {self.cfg.path}"
 
-    def prepare_playback(
-        self,
-        keys: Sequence[Hashable],
-        progress: Callable[[int, int], None] | None = None,
-        stop: Callable[[], bool] | None = None,
-    ) -> None:
+    def prepare_playback(self, keys: Sequence[Hashable], progress: Progress = None, stop: StopCheck = None) -> None:
         """Before real-time playback of the frames of `keys`: make them readable at the stream's rate where reading
         one is slower than that (the synthetic room renders those it has not cached). `progress(done, total)`
         reports the work; `stop()` ends it early. Sources that read files have nothing to do."""

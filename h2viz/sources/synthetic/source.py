@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Hashable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, as_completed
 from pathlib import Path
 
@@ -22,7 +22,7 @@ import trimesh
 
 from h2viz.config import SourceConfig
 from h2viz.errors import FrameError, SourceError
-from h2viz.sources.base import FrameSource
+from h2viz.sources.base import FrameSource, Progress, StopCheck
 from h2viz.sources.synthetic.frame_cache import FrameCache
 from h2viz.sources.synthetic.scene import Scene, build_scene
 from h2viz.sources.synthetic.trajectory import trajectory
@@ -117,12 +117,7 @@ class SyntheticSource(FrameSource):
             self.cache.put(index, rgb, depth)
         return rgb, depth
 
-    def prepare_playback(
-        self,
-        keys: Sequence[Hashable],
-        progress: Callable[[int, int], None] | None = None,
-        stop: Callable[[], bool] | None = None,
-    ) -> None:
+    def prepare_playback(self, keys: Sequence[Hashable], progress: Progress = None, stop: StopCheck = None) -> None:
         """Render the frames of `keys` not cached yet (on every core), so that real-time playback reads each in a few
         milliseconds instead of rendering it in ~0.2 s, which would pass over most of a 30 Hz stream. Nothing to do
         once they are cached, or when the cache is off or cannot be written (frames are then rendered as read)."""
@@ -146,7 +141,7 @@ class SyntheticSource(FrameSource):
                         f.cancel()
                     break
 
-    def _render_missing(self, index: int, stop: Callable[[], bool] | None) -> None:
+    def _render_missing(self, index: int, stop: StopCheck) -> None:
         if (stop is None or not stop()) and self.cache is not None and not self.cache.has(index):
             self._rendered(index)
 
