@@ -300,7 +300,7 @@ def node_name(key: Key) -> str:
 
 
 class Preloaded(FrameSource):
-    """Frames read before the run, so that no run pays for loading (the synthetic scene ray-casts each one);
+    """Frames read before the run, so that no run pays for loading them (--read-frames: read as the app does);
     read once per source configuration and shared by the runs of one benchmark."""
 
     format_name = "preloaded"
