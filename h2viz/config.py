@@ -67,10 +67,11 @@ class SyntheticConfig:
     prefetch: int = 4
     """Frames rendered ahead in a background thread (0 = render on demand)."""
     cache: bool = True
-    """Keep rendered frames on disk (~0.3 MB a 640x480 frame) and read them back in later runs of the same room:
-    reading takes ~7 ms, rendering ~0.2 s. Real-time playback renders the frames it will play first, once."""
+    """Keep rendered frames on disk (~0.36 MB a 640x480 frame) and read them back in later runs of the same room:
+    reading takes ~4 ms, rendering ~0.2 s. Real-time playback renders the frames it will play first, once."""
     cache_dir: str = ""
-    """Folder of the frame cache (empty = $H2VIZ_CACHE_DIR, else ~/.cache/h2viz); safe to delete at any time."""
+    """Folder of the frame cache (empty = $H2VIZ_CACHE_DIR, else $XDG_CACHE_HOME/h2viz or ~/.cache/h2viz); safe to
+    delete at any time."""
     recipe: str = ""
     """YAML file with the room's palettes (empty = assets/synthetic_room.yaml, shipped with h2viz: copy and edit it)."""
 

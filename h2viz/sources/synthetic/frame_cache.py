@@ -7,11 +7,10 @@ once to a cache folder and read back (~4 ms) by every later run with the same ro
 
 A frame is stored losslessly: the colour (H,W,3) uint8, and the depth's float32 bits differenced twice along
 each row (about zero across a plane), each zstd-compressed (~0.36 MB a 640x480 frame, ~110 MB for the 300
-default frames; reading one back takes ~4 ms). The folder's name is a hash of
-everything the pixels depend on (the room's seed and recipe, image size, field of view, number of frames, the
-renderer's source code and trimesh's version), so a change to any of them renders afresh. Files are written
-atomically; an unreadable one is rendered again and replaced. Depth noise is added after reading, as after
-rendering: a frame is the same whether it was rendered or read.
+default frames). The folder's name is a hash of everything the pixels depend on (the room's seed and recipe,
+image size, field of view, number of frames, the renderer's source code and trimesh's version), so a change to any
+of them renders afresh. Files are written atomically; an unreadable one is rendered again and replaced. Depth noise
+is added after reading, as after rendering: a frame is the same whether it was rendered or read.
 """
 
 from __future__ import annotations

@@ -128,12 +128,10 @@ class SyntheticSource(FrameSource):
         if not missing:
             return
         log.info("rendering %d synthetic frames for real-time playback, once: cached in %s", len(missing), cache.folder)
-        done = 0
         with ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="h2viz-synthetic") as pool:
             pending = [pool.submit(self._render_missing, k, stop) for k in missing]
-            for future in as_completed(pending):
+            for done, future in enumerate(as_completed(pending), 1):
                 future.result()
-                done += 1
                 if progress is not None:
                     progress(done, len(missing))
                 if stop is not None and stop():
