@@ -27,6 +27,7 @@ import numpy as np
 import trimesh
 import zstandard
 
+import h2viz
 from h2viz.config import SyntheticConfig
 from h2viz.sources.synthetic.layout import RECIPE
 
@@ -53,9 +54,11 @@ def cache_root(configured: str = "") -> Path:
 def room_key(sc: SyntheticConfig) -> str:
     """A hash of everything a rendered frame's pixels depend on."""
     h = hashlib.sha256(f"{FORMAT} {sc.seed} {sc.width} {sc.height} {sc.fov_deg!r} {sc.n_frames}".encode())
-    h.update(trimesh.__version__.encode())
-    for path in (*_CODE, Path(sc.recipe) if sc.recipe else RECIPE):
-        h.update(path.read_bytes())
+    h.update(f"{trimesh.__version__} {h2viz.__version__}".encode())
+    for path in _CODE:
+        with contextlib.suppress(OSError):  # an install without sources: the package version stands for them
+            h.update(path.read_bytes())
+    h.update((Path(sc.recipe) if sc.recipe else RECIPE).read_bytes())  # readable: the scene was built from it
     return h.hexdigest()[:20]
 
 

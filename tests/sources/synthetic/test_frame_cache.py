@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from h2viz.config import SourceConfig, SyntheticConfig
+from h2viz.sources.synthetic import frame_cache
 from h2viz.sources.synthetic.frame_cache import FrameCache, cache_root, room_key
 from h2viz.sources.synthetic.source import SyntheticSource
 
@@ -94,6 +95,12 @@ def test_each_room_configuration_has_its_own_folder(tmp_path: Path) -> None:
     recipe.write_text((Path(__file__).parents[3] / "assets" / "synthetic_room.yaml").read_text() + "\n# edited\n")
     assert room_key(replace(base, recipe=str(recipe))) not in keys
     assert room_key(replace(base, depth_noise_m=0.01, prefetch=0)) == room_key(base)  # added after reading
+
+
+def test_an_install_without_the_renderer_sources_still_keys_its_cache(monkeypatch: pytest.MonkeyPatch) -> None:
+    base = SyntheticConfig(width=W, height=H, n_frames=12)
+    monkeypatch.setattr(frame_cache, "_CODE", (Path("/nonexistent/scene.py"),))
+    assert room_key(base) == room_key(base) and room_key(replace(base, seed=1)) != room_key(base)
 
 
 def test_the_cache_lives_where_configured_else_in_the_user_cache(monkeypatch: pytest.MonkeyPatch) -> None:
