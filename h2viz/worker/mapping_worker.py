@@ -11,6 +11,7 @@ the map keeps sharpening over its keyframes until the loss plateaus or the user 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import threading
@@ -91,6 +92,7 @@ class MappingWorker(CommandServing):
         self._feed = self._open_feed(self._resume_after)
         self._schedule = AnytimeSchedule(cfg.anytime.opt_share, cfg.anytime.catch_up_frames, cfg.anytime.backlog_frames)
         self._plateau = plateau_from(cfg.anytime)
+        self._rss_t, self._rss = -math.inf, 0.0  # when resident memory was last read, and what it was
         self._fusion = FusionStride(cfg.anytime.fine_prior_stride)  # while frames wait: every k-th fused whole
         self._phase = ""  # real-time mode: a Phase value ("" in every-frame mode)
         self._opt_steps = self._newest_steps = 0  # real-time steps in all, and on the newest frame
@@ -652,7 +654,7 @@ class MappingWorker(CommandServing):
                 skipped=len({s.key for s in self.source.skipped}) + self._failures,  # once, when read again on resume
                 dropped=self._feed.dropped,
                 metrics=dict(self._metrics),
-                memory_mb=rss_mb(),
+                memory_mb=self._rss_mb(),
                 refine_left=self._refine_left,
                 refined=self._refined,
                 phase=self._phase,
@@ -663,6 +665,13 @@ class MappingWorker(CommandServing):
             self.slot.put(snap)
             if self._recorder is not None:
                 self._recorder.offer(snap)
+
+    def _rss_mb(self) -> float:
+        """The process's resident memory, read at most once a second (snapshots come at up to 30 a second)."""
+        now = time.monotonic()
+        if now - self._rss_t >= 1.0:
+            self._rss_t, self._rss = now, rss_mb()
+        return self._rss
 
     def _publish_mesh(self) -> None:
         """(mesh thread) The last snapshot again with the mapper's current chunks, then, when they are due, with

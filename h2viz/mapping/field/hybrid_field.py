@@ -100,7 +100,8 @@ class HybridField(nn.Module):
             self.priors = grown.requires_grad_(self.priors.requires_grad)
         if octree.n_voxels != self.corner_ids.shape[0]:
             self.corner_ids = torch.from_numpy(octree.voxel_corners).to(dev)
-            self.voxel_origin = torch.from_numpy(octree.voxel_coords()).to(dev, torch.float32) * self.voxel_size_m
+            coords = octree.voxel_coords().astype(np.float32)  # (V,3) a writable copy
+            self.voxel_origin = torch.from_numpy(coords).to(dev) * self.voxel_size_m
         if self.color_prior is not None:
             self.color_prior.to(dev)
             self.color_prior.grow(octree.n_voxels)

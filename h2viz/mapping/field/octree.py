@@ -136,6 +136,7 @@ class VoxelOctree:
         self.voxels = KeyIndex()
         self.corners = KeyIndex()
         self.voxel_corners = np.zeros((0, 8), dtype=np.int64)  # (V,8) corner ids
+        self._coords: tuple[np.ndarray, np.ndarray] = (self.voxels.keys, np.zeros((0, 3), np.int64))
 
     @property
     def n_voxels(self) -> int:
@@ -146,8 +147,20 @@ class VoxelOctree:
         return len(self.corners)
 
     def voxel_coords(self) -> np.ndarray:
-        """(V,3) int64 leaf coordinates in id order."""
-        return decode(self.voxels.keys)
+        """(V,3) int64 leaf coordinates in id order (read-only). Voxels are only ever appended, so each call decodes
+        the keys added since the last: the map's voxels are decoded once, not at every frame."""
+        keys = self.voxels.keys
+        decoded_keys, coords = self._coords
+        if keys is decoded_keys:
+            return coords
+        n = len(coords)
+        if n <= keys.size and np.array_equal(decoded_keys[:n], keys[:n]):  # appended to (else replaced: all anew)
+            coords = np.concatenate([coords, decode(keys[n:])])
+        else:
+            coords = decode(keys)
+        coords.flags.writeable = False  # shared by every caller
+        self._coords = (keys, coords)
+        return coords
 
     def corner_coords(self) -> np.ndarray:
         """(C,3) int64 corner lattice coordinates in id order."""
@@ -214,7 +227,7 @@ class VoxelOctree:
 
     def face_neighbours(self, voxels: np.ndarray) -> np.ndarray:
         """Ids (n,6) of the voxels across the -x, +x, -y, +y, -z, +z faces of voxels (n,), -1 where none."""
-        coords = self.voxel_coords()[np.asarray(voxels, np.int64)]  # (n,3)
+        coords = decode(self.voxels.keys[np.asarray(voxels, np.int64)])  # (n,3): only these voxels' keys decoded
         return self.voxels.lookup(encode(coords[:, None, :] + FACE_DIRS[None]))  # (n,6)
 
     def lookup_points(self, points: torch.Tensor) -> torch.Tensor:

@@ -78,6 +78,21 @@ def test_allocation_is_incremental_and_observed_lists_seen_voxels() -> None:
     assert sorted(alloc.observed.tolist()) == [0, 1]
 
 
+def test_voxel_coords_follow_appended_and_replaced_voxels() -> None:
+    """Coordinates are decoded once per voxel (the ones appended since the last call) and stay those of the keys:
+    after growth, after nothing changed (the same array), and after the voxels were replaced (a loaded map)."""
+    tree = VoxelOctree(0.1, min_points=0, expansion=False)
+    tree.allocate(cloud_in_voxel((0, 0, 0), 3))
+    first = tree.voxel_coords()
+    assert first.tolist() == [[0, 0, 0]] and tree.voxel_coords() is first and not first.flags.writeable
+    tree.allocate(np.concatenate([cloud_in_voxel(c, 3) for c in [(2, -1, 0), (0, 0, 0), (-4, 3, 7)]]))
+    assert np.array_equal(tree.voxel_coords(), decode(tree.voxels.keys)) and len(tree.voxel_coords()) == 3
+    other = VoxelOctree(0.1, min_points=0, expansion=False)
+    other.allocate(np.concatenate([cloud_in_voxel(c, 3) for c in [(9, 9, 9), (8, 0, 0), (1, 1, 1), (5, 5, 5)]]))
+    tree.load_state_dict(other.state_dict())
+    assert tree.voxel_coords().tolist() == other.voxel_coords().tolist()
+
+
 def test_lookup_points_and_levels() -> None:
     tree = VoxelOctree(0.1, min_points=0, expansion=False)
     tree.allocate(np.concatenate([cloud_in_voxel(c, 3) for c in [(0, 0, 0), (1, 1, 1), (-1, 0, 0), (5, 0, 0)]]))
