@@ -52,6 +52,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.realtime import stage_note  # noqa: E402
 from h2viz.config import Config, load_config, source_config_file  # noqa: E402
 from h2viz.sources.base import FrameSource, make_source  # noqa: E402
 from h2viz.types import RgbdFrame  # noqa: E402
@@ -130,6 +131,7 @@ class Run:
     update_chunks: list[int] = field(default_factory=list)
     whole_mesh_bytes: int = 0
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds while mapping, by thread / process
+    cpu_window_s: float = 0.0  # the seconds cpu_s covers (0: mapping_s)
     messages: dict[str, tuple[int, int]] = field(default_factory=dict)  # browser 0: type -> (count, bytes)
     ws_frames: int = 0  # websocket frames browser 0 received
     gl_frames: int = 0  # scene frames page 0 drew while mapping
@@ -150,14 +152,15 @@ class Run:
 def cpu_seconds() -> dict[str, float]:
     """CPU seconds so far of this process's threads (by name) and of its child processes (the browsers)."""
     tick = os.sysconf("SC_CLK_TCK")
-    names = {t.native_id: t.name for t in threading.enumerate() if t.name.startswith("h2viz-")}
+    names = {t.native_id: t.name if t.name.startswith("h2viz-") else "other Python threads (viser, ...)"
+             for t in threading.enumerate()}  # fmt: skip
     out: dict[str, float] = {}
     for task in Path("/proc/self/task").iterdir():
         try:
             fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
         except OSError:
             continue
-        key = names.get(int(task.name), "other threads (torch, numba, viser, ...)")
+        key = names.get(int(task.name), "native threads (torch and numba workers)")
         out[key] = out.get(key, 0.0) + (int(fields[11]) + int(fields[12])) / tick
     for kind, ticks in _tree_ticks(os.getpid()).items():
         out[kind] = ticks / tick
@@ -399,14 +402,22 @@ def mapping_run(
     t0, cpu0, frames0 = time.time(), cpu_seconds(), drawn()
     worker.start()
     next_check = 0.0
+    first: tuple[float, dict[str, float]] | None = None  # time and CPU seconds when the first frame was mapped
+    last, n_last = (t0, cpu0), 0  # ... when the latest was, and the frames mapped then
     while len(worker.mapped_at) < len(source) and not worker.wait_finished(0.05):
         if background and time.time() > next_check:  # and the threads the browsers started since
             background_browsers(os.getpid())
             next_check = time.time() + 1.0
         if record and pages:
             pages[0].wait_for_timeout(100)  # Playwright delivers the frame events while it waits
+        if len(worker.mapped_at) != n_last:
+            last, n_last = (time.time(), cpu_seconds()), len(worker.mapped_at)
+            first = first or last
     cpu1 = cpu_seconds()
     run.cpu_s = {k: v - cpu0.get(k, 0.0) for k, v in cpu1.items()}
+    if first is not None and last[0] - first[0] > 1.0:  # the CPU from the first frame mapped to the last
+        run.cpu_window_s = last[0] - first[0]
+        run.cpu_s = {k: v - first[1].get(k, 0.0) for k, v in last[1].items()}
     run.gl_frames = drawn() - frames0
     while not worker.wait_finished(0.05):
         if pages:
@@ -578,10 +589,10 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
         print(f"| websocket frames received / s | {r.ws_frames / r.mapping_s:.1f} |")
         print("| messages received (count, kB) | " + ", ".join(f"{k} {c} ({b / 1e3:.0f})" for k, (c, b) in top) + " |")
     heads = " | ".join(r.label for r in runs)
-    print(f"\n| CPU while mapping, % of one core | {heads} |")
+    print(f"\n| CPU from the first frame mapped to the last, % of one core | {heads} |")
     print("|---|" + "---:|" * len(runs))
     for name in sorted({k for r in runs for k in r.cpu_s}):
-        cells = " | ".join(f"{100 * r.cpu_s.get(name, 0.0) / r.mapping_s:.0f}" for r in runs)
+        cells = " | ".join(f"{100 * r.cpu_s.get(name, 0.0) / (r.cpu_window_s or r.mapping_s):.0f}" for r in runs)
         print(f"| {name} | {cells} |")
     shown = [r for r in runs if r.browsers > 0 and not r.remote]
     if shown:
@@ -690,6 +701,7 @@ def main() -> None:
                 if mapped and len(mapped) < len(played):
                     dropped += f"; not integrated: frames {ranges([i for i in played if i not in mapped])}"
                 print(f"{run.label}: {run.frames} frames mapped in {run.mapping_s:.1f} s{dropped}", file=sys.stderr)
+                print(f"{run.label}: {stage_note(worker.slot.get()[1].stats)}", file=sys.stderr)
                 if not renders and not args.no_renders:
                     renders = render_times(worker)
                 if browser is not None:
