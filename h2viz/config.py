@@ -523,12 +523,14 @@ class AnytimeConfig:
     a frame less."""
     observed_points: int = 30_000
     """Depth points of each frame that mark observed cells for meshing (every-frame mode takes 60k)."""
-    fine_prior_stride: int = 2
+    fine_prior_stride: int = 4
     """While other frames wait to be integrated, a frame fuses its depth into the fine SDF prior lattices of the
     voxels it allocates only, and every fine_prior_stride-th frame into every lattice in view (1 = every frame
     into every lattice, as every-frame mode). With no frame waiting every frame is fused whole. At 30 Hz
     consecutive frames see nearly the same surfaces, and fine-prior fusion is about half of a frame's integration:
-    integration that falls behind catches up ~40 % faster."""
+    integration that falls behind catches up ~40 % faster. At 4 rather than 2 the dashboard with its live mesh
+    integrated 99-103 of 150 frames instead of 77-88 on two cores, and `h2viz map --realtime` (224 of 300
+    frames thinned instead of 149) ended at the same Acc / Comp (1.01 / 1.04 cm) and PSNR (32.67 vs 32.70 dB)."""
 
 
 @dataclass

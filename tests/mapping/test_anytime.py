@@ -251,11 +251,12 @@ def test_a_realtime_run_autosaves_every_m_seconds_and_when_the_stream_ends() -> 
     assert (np.diff([t for _, _, t in saves[:-1]]) >= 0.1 - 1e-9).all()  # due by time; the last one at the end
 
 
-def test_frames_integrated_while_others_wait_fuse_every_lattice_every_other_frame() -> None:
+def test_frames_integrated_while_others_wait_fuse_every_lattice_every_fourth_frame() -> None:
     run = AnytimeRun(IntegratingMapper(), ArrivedFeed(range(9)), AnytimeConfig(), FakeClock(0.01))  # type: ignore[arg-type]
     run.stream()
-    assert run.mapper.fused_all == [False, True] * 4 + [True]  # the last one: no frame waits (the end not counted)
-    assert run.totals.thinned == 4 and run.totals.integrated == 9
+    assert AnytimeConfig().fine_prior_stride == 4
+    assert run.mapper.fused_all == [False, False, False, True] * 2 + [True]  # the last: no frame waits
+    assert run.totals.thinned == 6 and run.totals.integrated == 9
 
 
 def test_a_failing_autosave_of_a_realtime_run_is_reported_once_and_mapping_goes_on() -> None:
