@@ -403,16 +403,16 @@ def mapping_run(
     worker.start()
     next_check = 0.0
     first: tuple[float, dict[str, float]] | None = None  # time and CPU seconds when the first frame was mapped
-    last, n_last = (t0, cpu0), 0  # ... when the latest was, and the frames mapped then
+    last, n_last = (t0, cpu0), 0  # ... when the latest count was read (at most a second after it changed)
     while len(worker.mapped_at) < len(source) and not worker.wait_finished(0.05):
         if background and time.time() > next_check:  # and the threads the browsers started since
             background_browsers(os.getpid())
             next_check = time.time() + 1.0
         if record and pages:
             pages[0].wait_for_timeout(100)  # Playwright delivers the frame events while it waits
-        if len(worker.mapped_at) != n_last:
-            last, n_last = (time.time(), cpu_seconds()), len(worker.mapped_at)
-            first = first or last
+        if len(worker.mapped_at) != n_last and (first is None or time.time() - last[0] >= 1.0):
+            last, n_last = (time.time(), cpu_seconds()), len(worker.mapped_at)  # at most once a second: /proc
+            first = first or last  # reads hold the GIL, which the mapping thread waits for
     cpu1 = cpu_seconds()
     run.cpu_s = {k: v - cpu0.get(k, 0.0) for k, v in cpu1.items()}
     if first is not None and last[0] - first[0] > 1.0:  # the CPU from the first frame mapped to the last
@@ -589,7 +589,7 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
         print(f"| websocket frames received / s | {r.ws_frames / r.mapping_s:.1f} |")
         print("| messages received (count, kB) | " + ", ".join(f"{k} {c} ({b / 1e3:.0f})" for k, (c, b) in top) + " |")
     heads = " | ".join(r.label for r in runs)
-    print(f"\n| CPU from the first frame mapped to the last, % of one core | {heads} |")
+    print(f"\n| CPU while frames were integrated (read once a second), % of one core | {heads} |")
     print("|---|" + "---:|" * len(runs))
     for name in sorted({k for r in runs for k in r.cpu_s}):
         cells = " | ".join(f"{100 * r.cpu_s.get(name, 0.0) / (r.cpu_window_s or r.mapping_s):.0f}" for r in runs)
