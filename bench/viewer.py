@@ -448,6 +448,7 @@ def mapping_run(
 def _measure(run: Run, worker: MappingWorker, wire: Wire) -> None:
     """Latencies per frame, job durations and bytes per update from the pass log and the wire."""
     passes = list(worker.meshing.passes)
+    published_at = list(worker.meshing.published)  # copies: the mesh thread may still be publishing
     jobs: dict[int, list[Any]] = {}
     for p in passes:
         jobs.setdefault(p.job_version, []).append(p)
@@ -476,7 +477,7 @@ def _measure(run: Run, worker: MappingWorker, wire: Wire) -> None:
             run.start_s.append(own[0].started - t_mapped)
             extracted = max(p.finished for p in own)
             run.extract_s.append(extracted - t_mapped)
-            published = next((t for t in worker.meshing.published if t >= extracted), None)
+            published = next((t for t in published_at if t >= extracted), None)
             if published is not None:
                 run.published_s.append(published - t_mapped)
             if all(t is not None for t in sent):
