@@ -498,8 +498,10 @@ def test_other_threads_always_read_a_complete_chunk_dict() -> None:
         chunks = mesher.chunks
         assert set(chunks) == set(first)  # never a chunk missing while it is re-meshed
         seen.append(sum(c.version == 2 for c in chunks.values()))
+        time.sleep(0.0005)  # a reader that spins holds the GIL the re-meshing thread needs
     worker.join()
     assert seen == sorted(seen) and max(seen) <= len(first)
+    assert len(seen) > 10 and seen[0] == 0  # read all through the update
 
 
 def test_packed_rows_unpack_to_themselves() -> None:
