@@ -732,11 +732,12 @@ def test_mesh_errors_are_reported_and_later_jobs_still_run() -> None:
 
 
 class SlowMeshMapper(FakeMapper):
-    """A FakeMapper whose mesh jobs last until `frames_while_meshing` more frames were mapped."""
+    """A FakeMapper whose mesh jobs last until `frames_while_meshing` more frames were mapped (or all `n_frames`
+    of the source: no more will come)."""
 
-    def __init__(self, frames_while_meshing: int) -> None:
+    def __init__(self, frames_while_meshing: int, n_frames: int = 16) -> None:
         super().__init__()
-        self.frames_while_meshing = frames_while_meshing
+        self.frames_while_meshing, self.n_frames = frames_while_meshing, n_frames
         self.mapped_during: list[int] = []
 
     def mesh_job(self, refresh_s: float = 0.0, whole: bool = False) -> object:
@@ -748,7 +749,8 @@ class SlowMeshMapper(FakeMapper):
         def run(stop: object = None, on_pass: object = None, hurry: object = None) -> None:
             start = self._version
             deadline = time.monotonic() + 10
-            while self._version < start + self.frames_while_meshing and time.monotonic() < deadline:
+            until = min(start + self.frames_while_meshing, self.n_frames)
+            while self._version < until and time.monotonic() < deadline:
                 time.sleep(0.01)
             self.mapped_during.append(self._version - start)
             inner_run(stop, on_pass, hurry)
