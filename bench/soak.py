@@ -24,6 +24,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Hashable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +58,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--reuse", action="store_true", help="keep the runs already finished in --out, run the others")
     p.add_argument("--doc", default="", help="also write the report to this markdown file (docs/soak.md)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="more config overrides")
+    p.add_argument("--side-by-side", action="store_true",
+                   help="run the crash run beside the others instead of after them (sooner; the runs then share "
+                        "the cores, so their frame times are not each run's own)")  # fmt: skip
     p.add_argument("--child", default="", help=argparse.SUPPRESS)  # run folder of a child process
     p.add_argument("--child-laps", type=int, default=1, help=argparse.SUPPRESS)
     p.add_argument("--resume", action="store_true", help=argparse.SUPPRESS)
@@ -202,6 +206,16 @@ def progress(folder: Path) -> int:
         return int((folder / "progress").read_text() or 0)
     except (OSError, ValueError):
         return 0
+
+
+def crash_or_earlier(args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    """The crash run's outcome: the one `out` holds from an earlier invocation, else a new crash run's."""
+    if (out / "crash.json").is_file():
+        return json.loads((out / "crash.json").read_text())
+    shutil.rmtree(out / "crash", ignore_errors=True)
+    crash = crash_run(args, out / "crash", args.laps)
+    (out / "crash.json").write_text(json.dumps(crash))
+    return crash
 
 
 def crash_run(args: argparse.Namespace, folder: Path, laps: int) -> dict[str, Any]:
@@ -372,18 +386,15 @@ def main(argv: Sequence[str] | None = None) -> str:
         raise SystemExit(f"{out} is not empty; pass another --out, remove it, or --reuse its finished runs")
     plan = {"revisit": args.laps} | ({} if args.no_explore else {"explore": 1})
     runs, summaries = {}, {}
-    for name, laps in plan.items():
-        if not (out / name / "summary.json").is_file():
-            shutil.rmtree(out / name, ignore_errors=True)  # an unfinished run starts again
-            finish(spawn(args, out / name, laps), out / name)
-        runs[name] = read_samples(out / name)
-        summaries[name] = json.loads((out / name / "summary.json").read_text())
-    if (out / "crash.json").is_file():
-        crash = json.loads((out / "crash.json").read_text())
-    else:
-        shutil.rmtree(out / "crash", ignore_errors=True)
-        crash = crash_run(args, out / "crash", args.laps)
-        (out / "crash.json").write_text(json.dumps(crash))
+    with ThreadPoolExecutor(1) as beside:
+        crashed = beside.submit(crash_or_earlier, args, out) if args.side_by_side else None
+        for name, laps in plan.items():
+            if not (out / name / "summary.json").is_file():
+                shutil.rmtree(out / name, ignore_errors=True)  # an unfinished run starts again
+                finish(spawn(args, out / name, laps), out / name)
+            runs[name] = read_samples(out / name)
+            summaries[name] = json.loads((out / name / "summary.json").read_text())
+        crash = crashed.result() if crashed is not None else crash_or_earlier(args, out)
     runs["crash"] = read_samples(out / "crash")
     summaries["crash"] = json.loads((out / "crash" / "summary.json").read_text())
     match = mesh_match(out / "revisit" / "mesh.ply", out / "crash" / "mesh.ply")

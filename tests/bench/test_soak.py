@@ -20,6 +20,7 @@ def test_a_tiny_soak_samples_memory_and_recovers_from_sigkill(tmp_path: Path) ->
     out = tmp_path / "soak"
     argv = ["--frames", "16", "--laps", "2", "--width", "96", "--sample-every", "4", "--autosave-every", "3",
             "--budget-mb", "0.4", "--no-explore", "--seed", "3", "--out", str(out), "--doc", str(tmp_path / "soak.md"),
+            "--side-by-side",
             *TINY]  # fmt: skip
     text = soak.main(argv)
     revisit = soak.read_samples(out / "revisit")
