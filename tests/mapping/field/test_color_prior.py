@@ -24,7 +24,7 @@ def _octree(points: np.ndarray) -> VoxelOctree:
 def _prior(octree: VoxelOctree, fused: bool, sub: int = SUB) -> tuple[ColorPrior, torch.Tensor]:
     prior = ColorPrior(VS, backend=FAST if fused else REFERENCE, sub=sub)
     prior.grow(octree.n_voxels)
-    origin = torch.from_numpy(octree.voxel_coords()).float() * VS
+    origin = torch.from_numpy(octree.voxel_coords().astype(np.float32)) * VS  # (V,3) metres
     return prior, origin
 
 
