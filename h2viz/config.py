@@ -528,9 +528,11 @@ class AnytimeConfig:
     voxels it allocates only, and every fine_prior_stride-th frame into every lattice in view (1 = every frame
     into every lattice, as every-frame mode). With no frame waiting every frame is fused whole. At 30 Hz
     consecutive frames see nearly the same surfaces, and fine-prior fusion is about half of a frame's integration:
-    integration that falls behind catches up ~40 % faster. At 4 rather than 2 the dashboard with its live mesh
-    integrated 99-103 of 150 frames instead of 77-88 on two cores, and `h2viz map --realtime` (224 of 300
-    frames thinned instead of 149) ended at the same Acc / Comp (1.01 / 1.04 cm) and PSNR (32.67 vs 32.70 dB)."""
+    integration that falls behind catches up ~40 % faster. At 4 rather than 2, `h2viz map --realtime` (224 of 300
+    frames thinned instead of 149) ended with the same Acc / Comp (1.01 / 1.04 cm) and PSNR (32.67 vs 32.70 dB).
+    In the dashboard, where the GIL limits integration more than its own work does, alternating runs on two cores
+    integrated 99-103 of 150 frames at 4 against 77-88 at 2 in one set and 80-92 against 71-83 in another (with
+    other changes, docs/anytime.md)."""
 
 
 @dataclass

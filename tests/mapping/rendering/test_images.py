@@ -192,7 +192,7 @@ def test_finite_difference_normals_match_autograd_normals(sphere: tuple[Scene, M
     rng = np.random.default_rng(3)
     voxel = torch.from_numpy(rng.integers(0, mapper.octree.n_voxels, 20000))
     local = torch.from_numpy(rng.uniform(0.05, 0.95, size=(20000, 3)).astype(np.float32))
-    points = torch.from_numpy(mapper.octree.voxel_coords()).float()[voxel] * mapper.voxel_size_m
+    points = torch.from_numpy(mapper.octree.voxel_coords().astype(np.float32))[voxel] * mapper.voxel_size_m
     points = points + local * mapper.voxel_size_m
     with torch.no_grad():
         near = mapper.field.sdf(points, voxel).abs() < 0.7

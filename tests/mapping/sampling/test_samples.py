@@ -64,7 +64,7 @@ def test_samples_lie_in_their_voxels_and_are_ordered(backend: Backend) -> None:
     d = torch.nn.functional.normalize(torch.randn(64, 3), dim=1)
     s = sample_rays(tree, o, d, torch.full((64,), 2.0), 0.01, jitter=True, backend=backend)
     assert s.t.numel() > 0
-    coords = torch.from_numpy(tree.voxel_coords()).float()[s.voxel] * 0.1
+    coords = torch.from_numpy(tree.voxel_coords().astype(np.float32))[s.voxel] * 0.1
     inside = ((s.points >= coords - 1e-5) & (s.points <= coords + 0.1 + 1e-5)).all(dim=1)
     assert bool(inside.all())
     assert bool((s.ray[1:] >= s.ray[:-1]).all())
