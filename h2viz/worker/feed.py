@@ -67,6 +67,7 @@ class FrameFeed:
         self.passed_over = 0  # real-time mode: due before the reader got to them (a slow source)
         self.overflowed = 0  # real-time mode: pushed out of a full backlog (integration fell behind)
         self.read = 0  # frames read or skipped so far
+        self.arrived_at: dict[int, float] = {}  # real-time mode: frame index -> time.time() it joined the backlog
         self.preparing: tuple[int, int] | None = None  # (done, total) while the source prepares real-time playback
         self._prepared_stride = 0  # the stride real-time playback was prepared for (0: not prepared)
         self._position = 0
@@ -214,6 +215,7 @@ class FrameFeed:
                 self.dropped += 1
                 self.overflowed += 1
             self._frames.append(frame)
+            self.arrived_at[frame.index] = time.time()
             self._cond.notify_all()
         return clock
 

@@ -24,6 +24,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import torch
 import trimesh
 import zstandard
 
@@ -38,6 +39,7 @@ MAGIC = b"H2SF"
 HEADER = "<4sIIQ"  # magic, height, width, bytes of compressed colour; then the colour, then the depth
 LEVEL = 9  # zstd level: ~30 ms to write a frame (rendering it took ~200), ~3 ms to read it back
 ENV_DIR = "H2VIZ_CACHE_DIR"  # overrides the user cache folder (tests point it at a temporary one)
+MASK_32 = 0xFFFFFFFF
 _CODE = (*sorted(Path(__file__).parent.glob("*.py")), Path(__file__).parents[2] / "geometry.py")
 
 
@@ -60,6 +62,16 @@ def room_key(sc: SyntheticConfig) -> str:
             h.update(path.read_bytes())
     h.update((Path(sc.recipe) if sc.recipe else RECIPE).read_bytes())  # readable: the scene was built from it
     return h.hexdigest()[:20]
+
+
+def undo_row_differences(second: np.ndarray) -> np.ndarray:
+    """The (H,W) uint32 whose second differences along each row (mod 2^32) are `second` (H,W) uint32: the depth's
+    bits as written. Summed in torch, which releases the GIL while it sums: NumPy's cumsum holds it, and the mapping
+    thread, which takes the GIL back after each of its hundreds of small kernels a frame, waited for it."""
+    sums = torch.from_numpy(second.astype(np.int64))  # (H,W) a row's sums of values < 2^32 fit in 64 bits
+    sums = torch.cumsum(sums, dim=1).bitwise_and_(MASK_32)  # first differences, mod 2^32
+    sums = torch.cumsum(sums, dim=1).bitwise_and_(MASK_32)  # the bits
+    return sums.numpy().astype(np.uint32)
 
 
 class FrameCache:
@@ -102,9 +114,7 @@ class FrameCache:
         except Exception as e:  # truncated, corrupt or from another layout: render it again
             log.info("cached synthetic frame %s cannot be read (%s); rendering it again", path, e)
             return None
-        bits = np.cumsum(second, axis=1, dtype=np.uint32)
-        np.cumsum(bits, axis=1, dtype=np.uint32, out=bits)  # mod 2^32: exactly the bits written
-        return rgb, bits.view(np.float32)
+        return rgb, undo_row_differences(second).view(np.float32)
 
     def put(self, index: int, rgb: np.ndarray, depth: np.ndarray) -> None:
         """Store frame `index` (rgb (H,W,3) uint8, depth (H,W) float32); a failed write turns the cache off for
