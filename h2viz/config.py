@@ -502,9 +502,12 @@ class AnytimeConfig:
     opt_share: float = 0.25
     """Least share of the mapping thread's time that optimisation keeps while frames wait to be integrated and
     integration is not catching up (see catch_up_frames; with no frame waiting, optimisation has all of it)."""
-    backlog_frames: int = 30
+    backlog_frames: int = 60
     """Frames that may wait to be integrated; a frame arriving when this many wait is dropped and counted (the
-    stream outruns integration itself)."""
+    stream outruns integration itself). Two seconds at 30 Hz: where a camera first sees much of a room, integration
+    on two cores with the dashboard can fall 40-50 frames behind before it catches up (the synthetic room's frames
+    100-160), and a one-second backlog dropped 9-20 of them in some runs. A frame that waits is still integrated;
+    under a load that never lets integration catch up, the map then lags the camera by up to this many frames."""
     catch_up_frames: int = 3
     """With this many frames waiting, integration takes every turn until fewer wait (optimisation's share waits),
     so that a stream integration alone keeps up with loses no frame; a frame then waits at most about this many
