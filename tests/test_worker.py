@@ -4,7 +4,6 @@ Mapper (tiny configuration) on the room and on real 7-Scenes frames."""
 
 from __future__ import annotations
 
-import gc
 import io
 import threading
 import time
@@ -558,15 +557,6 @@ def test_stop_joins_and_refuses_new_commands(make_worker: Factory) -> None:
     assert not worker.alive
     with pytest.raises(H2vizError, match="not running"):
         worker.submit("pause").result(1)
-
-
-def test_the_start_up_heap_is_left_out_of_full_collections_while_the_worker_runs(make_worker: Factory) -> None:
-    gc.unfreeze()  # whatever an earlier test left frozen
-    worker = make_worker(BoxRoomSource(n=200), FakeMapper(delay_s=0.05))
-    wait_for(worker, lambda s: s.frames_done >= 1)
-    assert gc.get_freeze_count() > 0  # what existed when it started
-    worker.stop()
-    assert gc.get_freeze_count() == 0  # handed back to the collector: a process running many workers frees them
 
 
 # ------------------------------------------------------------------------------- the real Mapper

@@ -10,7 +10,6 @@ the map keeps sharpening over its keyframes until the loss plateaus or the user 
 
 from __future__ import annotations
 
-import gc
 import logging
 import math
 import os
@@ -54,16 +53,6 @@ STREAM_MESH_WAIT_S = 0.03  # ... or, while a real-time stream arrives and no fra
 REQUEST_FAULT_AUTOSAVE_S = 60.0  # a failing render or export autosaves at most this often (renders come in streams)
 STATS_KEPT = 2000  # per-frame stats the snapshots carry (the plots show the latest); older ones are counted only
 STREAM_PAUSE_S = 1.0  # real-time mode: no frame for this long, and the steps sharpen every keyframe instead
-
-
-def freeze_startup_heap() -> None:
-    """Until `gc.unfreeze()` (when the worker's run ends), leave the objects that exist now (modules, torch, the
-    source, the dashboard, compiled kernels) out of the cyclic garbage collector's full collections. A collection
-    holds the GIL, so every thread stops for it: on the synthetic room's live stream with the dashboard each full
-    collection took 120-190 ms (three in 10 s), and 40-100 ms with the start-up heap frozen. Objects made later are
-    collected as usual, and unfreezing hands the frozen ones back, so a process that runs many workers (the tests)
-    still frees what each left."""
-    gc.freeze()
 
 
 def rss_mb() -> float:
@@ -245,7 +234,6 @@ class MappingWorker(CommandServing):
             self._gt = self.source.ground_truth_mesh()
             if self.settings.realtime:  # kernels loaded at the first frames would cost a live stream ~30 of them
                 log.info("kernels ready in %.1f s", self.mapper.warm_up())
-            freeze_startup_heap()
             self._feed.hold(self._paused)
             self._feed.start()
             self._publish()
@@ -270,7 +258,6 @@ class MappingWorker(CommandServing):
             self._fail_pending(e)
         finally:
             self._feed.stop()
-            gc.unfreeze()  # see freeze_startup_heap
 
     # -- mapping -------------------------------------------------------------------------------
     def _idle(self) -> bool:
