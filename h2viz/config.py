@@ -436,9 +436,10 @@ class EvalConfig:
     cull_to_observed: bool = True
     """Keep only ground truth inside what the input frames observed."""
     n_interpolate: int = 20
-    """Training views rendered for PSNR/SSIM/depth L1 ("interpolate")."""
+    """Training views rendered for PSNR/SSIM/depth L1 ("interpolate"), spread over the frames the run mapped (with
+    another stride, or frames dropped in real time, the views differ: compare such runs with bench/heldout.py)."""
     n_extrapolate: int = 20
-    """Novel views away from the trajectory ("extrapolate")."""
+    """Novel views away from the trajectory ("extrapolate"), placed from the poses of the frames the run mapped."""
     render_downscale: int = 2
     """Evaluate renders at 1/k of the input resolution."""
     cull_margin_m: float = 0.05
