@@ -124,6 +124,7 @@ class Run:
     published_s: list[float] = field(default_factory=list)  # frame mapped -> the mesh thread published them
     sent_s: list[float] = field(default_factory=list)  # frame mapped -> the dashboard sent all of them
     waited_s: list[float] = field(default_factory=list)  # real-time: frame arrived -> integrated
+    unchanged: int = 0  # frames whose mesh job had no chunk to re-mesh at once (nothing to time)
     arrived_all_s: list[float] = field(default_factory=list)  # real-time: frame arrived -> all its chunks there
     job_s: list[float] = field(default_factory=list)  # job submitted -> its required passes done
     job_chunks: list[int] = field(default_factory=list)  # required chunks per job
@@ -462,9 +463,14 @@ def _measure(run: Run, worker: MappingWorker, wire: Wire) -> None:
     run.refreshed = sum(len(p.chunks) for p in passes if not p.required)
     run.mesh_busy_share = worker.meshing.busy_s / max(run.mapping_s, 1e-9)
     arrived = worker._feed.arrived_at  # real-time mode: when each frame joined the backlog
+    ran = sorted(worker.meshing.jobs, key=lambda j: j.version)  # every job run, those that re-meshed nothing too
     for n, (index, t_mapped) in enumerate(sorted(worker.mapped_at.items(), key=lambda item: item[1]), start=1):
         if index in arrived:
             run.waited_s.append(t_mapped - arrived[index])
+        first_job = next((j for j in ran if j.field_version >= n), None)
+        if first_job is not None and first_job.passes == 0 and not first_job.cut_short:
+            run.unchanged += 1  # its job had no chunk to re-mesh (no new voxel; refresh passes show it later)
+            continue
         version = next((v for v in sorted(jobs) if jobs[v][0].field_version >= n), None)
         if version is None:
             continue
@@ -601,6 +607,10 @@ def print_tables(runs: list[Run], renders: list[tuple[str, float, float]], comma
                 f"| real-time: frames whose chunks reached the browser more than 1 s after the frame arrived | "
                 f"{len(late)} of {len(r.arrived_all_s)} |"
             )
+        print(
+            "| frames left out above: their mesh job had no chunk to re-mesh at once (no new voxel; later refresh "
+            f"passes show what they changed) | {r.unchanged} |"
+        )
         print(f"| mesh updates received | {len(r.update_bytes)} |")
         print(f"| chunks re-meshed by refresh passes | {r.refreshed} |")
         print(f"| mesh thread busy / mapping time | {100 * r.mesh_busy_share:.0f} % |")

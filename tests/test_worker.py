@@ -662,6 +662,12 @@ def test_mesh_thread_merges_waiting_jobs_and_cuts_the_running_one_short() -> Non
         assert first.stopped and len(first.ran) < 50  # the waiting job cut the running one short
         assert third.names == ["third", "second"] and third.ran == [0] and second.ran == []
         assert published and not thread.errors
+        nothing = ScriptedJob("nothing to re-mesh", passes=0)
+        thread.submit(nothing)
+        assert thread.wait_idle(10)
+        records = list(thread.jobs)  # what measurements read: every job run, passes and whether cut short
+        assert [(r.passes, r.cut_short) for r in records] == [(len(first.ran), True), (1, False), (0, False)]
+        assert all(r.submitted <= r.finished for r in records)
     finally:
         thread.stop()
 

@@ -29,6 +29,19 @@ class PassRecord:
     required: bool  # part of the job's required chunks (changed or dirty), not the optional refresh
 
 
+@dataclass(frozen=True)
+class JobRecord:
+    """One job the thread ran (for measurements). A job that ran no pass and was not cut short had no chunk to
+    re-mesh: its frames allocated no voxel, and refresh passes of later jobs show how they changed the field."""
+
+    version: int  # the job's version
+    field_version: int  # frames integrated into the field it meshed
+    submitted: float  # time.time() the job was submitted
+    finished: float  # time.time() it ended
+    passes: int  # passes it ran
+    cut_short: bool  # a newer job was waiting when it ended: what it left undone is that job's
+
+
 class MeshThread:
     """Runs jobs (objects with `run(stop, on_pass, hurry)`, `after(older)`, `version`, `field_version`, like
     `h2viz.mapping.meshing.job.MeshJob`) one at a time; `publish()` is called after passes, no more often than
@@ -55,6 +68,7 @@ class MeshThread:
         self._required_since: float | None = None  # submission (monotonic) of the running job while on required passes
         self._next_publish = 0.0  # time.monotonic() from which publishing is allowed again
         self.passes: deque[PassRecord] = deque(maxlen=10_000)
+        self.jobs: deque[JobRecord] = deque(maxlen=10_000)
         self.published: deque[float] = deque(maxlen=10_000)  # time.time() each publish began (for measurements)
         self.errors: list[str] = []
         self.busy_s = 0.0  # seconds spent running jobs
@@ -128,7 +142,11 @@ class MeshThread:
         with self._cond:
             self._required_since = time.monotonic() - (time.time() - submitted)
 
+        n_passes = 0
+
         def on_pass(chunks: list[tuple[int, int, int]], required: bool) -> None:
+            nonlocal n_passes
+            n_passes += 1
             now = time.time()
             record = PassRecord(job.version, job.field_version, submitted, started, now, tuple(chunks), required)
             self.passes.append(record)
@@ -150,6 +168,8 @@ class MeshThread:
             self.errors.append(f"mesh extraction failed: {type(e).__name__}: {e}")
         finally:
             self.busy_s += time.perf_counter() - start
+            cut = self._has_pending()
+            self.jobs.append(JobRecord(job.version, job.field_version, submitted, time.time(), n_passes, cut))
             with self._cond:
                 self._running, self._required_since = False, None
                 self._cond.notify_all()

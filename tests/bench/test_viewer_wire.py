@@ -58,3 +58,30 @@ def test_a_chunk_counts_as_sent_with_its_first_send_at_that_version_or_when_drop
     assert wire.sent(a, 2) == third  # version 2 never went out on its own: the newer version 3 carried it
     assert wire.sent(b, 2) == gone
     assert wire.sent(a, 5) is None
+
+
+def test_frames_are_timed_by_the_first_job_that_meshed_them_from_their_arrival() -> None:
+    """Frames 1-2 go to job 1 (one pass); frame 3's job 2 ran no pass and was not cut short (no new voxel: nothing
+    to time); frame 4's job 3 was cut short before its first pass, so frame 4 is timed by job 4."""
+    from bench.viewer import Run, _measure
+    from h2viz.worker.mesh_thread import JobRecord, PassRecord
+
+    t0, a, b = 1000.0, (0, 0, 0), (1, 0, 0)
+    passes = [PassRecord(1, 2, t0 + 0.10, t0 + 0.10, t0 + 0.20, (a,), True)]
+    passes.append(PassRecord(4, 4, t0 + 0.60, t0 + 0.60, t0 + 0.70, (b,), True))
+    jobs = [JobRecord(1, 2, t0 + 0.10, t0 + 0.20, 1, False), JobRecord(2, 3, t0 + 0.30, t0 + 0.31, 0, False)]
+    jobs += [JobRecord(3, 4, t0 + 0.40, t0 + 0.41, 0, True), JobRecord(4, 4, t0 + 0.60, t0 + 0.70, 1, False)]
+    worker = SimpleNamespace(
+        meshing=SimpleNamespace(passes=passes, jobs=jobs, published=[t0 + 0.25, t0 + 0.75], busy_s=0.2),
+        mapped_at={10: t0 + 0.00, 11: t0 + 0.05, 12: t0 + 0.25, 13: t0 + 0.35},  # frame index -> integrated
+        _feed=SimpleNamespace(arrived_at={10: t0 - 0.10, 11: t0 - 0.05, 12: t0 + 0.20, 13: t0 + 0.30}),
+    )
+    wire = Wire()
+    wire.sends = [(t0 + 0.30, {a: 1}), (t0 + 0.80, {b: 4})]
+    wire.arrivals = [(t0 + 0.40, node_name(a), 100), (t0 + 0.90, node_name(b), 200)]
+    run = Run(1, recorded=True, mapping_s=1.0)
+    _measure(run, worker, wire)  # type: ignore[arg-type]
+    assert run.unchanged == 1  # frame 12
+    np.testing.assert_allclose(run.all_s, [0.40, 0.35, 0.55])  # frames 10, 11 (job 1) and 13 (job 4)
+    np.testing.assert_allclose(run.arrived_all_s, [0.50, 0.45, 0.60])
+    np.testing.assert_allclose(run.waited_s, [0.10, 0.10, 0.05, 0.05])  # every frame waited in the backlog
