@@ -292,7 +292,8 @@ def _map_anytime(
         eval_frames.add(position, frame)
         position += 1
         bar.update(position + feed.dropped - bar.n)
-        bar.set_postfix(steps=run.totals.stream_steps, dropped=feed.dropped, vox=mapper.octree.n_voxels)
+        waiting, steps, voxels = feed.frames_waiting(), run.totals.stream_steps, mapper.octree.n_voxels
+        bar.set_postfix(steps=steps, waiting=waiting, dropped=feed.dropped, vox=voxels)
         return frame.index > last_index
 
     mapper.warm_up()  # kernels loaded while the first frames arrive would cost the stream ~30 of them

@@ -139,6 +139,8 @@ class MapSnapshot:
     phase: str = ""  # real-time mode: streaming | sharpening | settled (h2viz.mapping.anytime.Phase); "" otherwise
     opt_steps: int = 0  # real-time mode: optimisation steps so far (between frames and after the stream)
     preparing: tuple[int, int] | None = None  # (done, total) frames the source prepares before real-time playback
+    waiting: int = 0  # real-time mode: frames that arrived and wait to be integrated (up to anytime.backlog_frames)
+    lag_s: float = 0.0  # real-time mode: how long the newest integrated frame waited after it arrived
 
 
 class RenderMode(str, Enum):

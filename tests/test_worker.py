@@ -297,6 +297,8 @@ def test_realtime_mode_counts_frames_integration_cannot_keep_up_with(make_worker
     source, mapper = BoxRoomSource(n=40), FakeMapper()
     mapper.add_delay_s = 0.1  # three frame periods per frame
     worker = make_worker(source, mapper, cfg=anytime_cfg(backlog_frames=4), realtime=True)
+    behind = wait_for(worker, lambda s: s.phase == "streaming" and s.waiting >= 2, 20)  # what the panel shows
+    assert 2 <= behind.waiting <= 4 and behind.lag_s > 0.05  # a full backlog waits; a frame waited > a period
     assert worker.wait_finished(30)
     snap = worker.slot.get()[1]
     mapped = [s.index for s in snap.stats]

@@ -50,6 +50,7 @@ def progress_markdown(snap: MapSnapshot) -> str:
         ("State", state),
         ("Frames", f"{snap.frames_done} / {total}"),
         ("Integrated / dropped / skipped", f"{snap.frames_done} / {snap.dropped} / {snap.skipped}"),
+        *([("Behind the stream", lag_text(snap))] if snap.phase == "streaming" else []),
         ("Time per frame", f"{1000 * float(np.mean(recent)):.0f} ms" if recent else "-"),
         ("Iterations", str(last.iterations) if last else "-"),
         *([("Optimisation steps", f"{snap.opt_steps:,}")] if snap.phase else []),
@@ -59,6 +60,13 @@ def progress_markdown(snap: MapSnapshot) -> str:
         ("Memory", f"{snap.memory_mb:,.0f} MB"),
     ]
     return "\n".join(["| | |", "|:--|--:|", *(f"| {k} | {v} |" for k, v in rows)])
+
+
+def lag_text(snap: MapSnapshot) -> str:
+    """How far integration is behind a real-time stream: the newest integrated frame's wait after it arrived, and
+    the frames waiting now (a full backlog, anytime.backlog_frames, drops the oldest)."""
+    waiting = f"{snap.waiting} frame{'s' if snap.waiting != 1 else ''} waiting"
+    return f"{snap.lag_s:.1f} s ({waiting})"
 
 
 def metrics_markdown(metrics: dict[str, float], frames_done: int) -> str:

@@ -133,6 +133,7 @@ class MappingWorker(CommandServing):
         self._refine_left = self._refined = 0
         self._viewers: int | None = None  # connected browsers; None: unknown, keep the live mesh up to date
         self._last_map_s = 0.0
+        self._lag_s = 0.0  # real-time mode: how long the newest integrated frame waited after it arrived
         self._publish_lock = threading.Lock()
         self._chunks_out: dict = {}  # the chunks snapshots carry (changed only by the mesh thread's publish)
         self._last_snap: MapSnapshot | None = None
@@ -384,6 +385,8 @@ class MappingWorker(CommandServing):
                 self._phase = Phase.STREAMING.value
                 self._plateau.reset()
         self.mapped_at[frame.index] = time.time()
+        if (arrived := self._feed.arrived_at.get(frame.index)) is not None:
+            self._lag_s = max(0.0, self.mapped_at[frame.index] - arrived)
         self._consecutive = 0
         self._unmeshed += 1
         self._stats.append(stats)
@@ -660,6 +663,8 @@ class MappingWorker(CommandServing):
                 phase=self._phase,
                 opt_steps=self._opt_steps,
                 preparing=self._feed.preparing,
+                waiting=self._feed.frames_waiting() if self.settings.realtime else 0,
+                lag_s=self._lag_s,
             )
             self._last_snap = snap
             self.slot.put(snap)

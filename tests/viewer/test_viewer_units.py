@@ -234,6 +234,11 @@ def test_panel_text_and_plot_data() -> None:
     assert "| State | finished, refined 500 steps |" in progress_markdown(replace(snap, finished=True, refined=500))
     preparing = progress_markdown(replace(snap, phase="streaming", preparing=(40, 300)))
     assert "rendering the frames to play, 40 / 300" in preparing and "optimising between frames" not in preparing
+    assert "Behind the stream" not in text  # every-frame mode: no stream to be behind
+    behind = progress_markdown(replace(snap, phase="streaming", waiting=12, lag_s=0.43))
+    assert "| Behind the stream | 0.4 s (12 frames waiting) |" in behind
+    assert "(1 frame waiting)" in progress_markdown(replace(snap, phase="streaming", waiting=1))
+    assert "Behind the stream" not in progress_markdown(replace(snap, phase="sharpening", waiting=0, lag_s=0.43))
 
 
 def test_both_plots_are_logarithmic() -> None:
