@@ -464,6 +464,7 @@ def _measure(run: Run, worker: MappingWorker, wire: Wire) -> None:
     run.mesh_busy_share = worker.meshing.busy_s / max(run.mapping_s, 1e-9)
     arrived = worker._feed.arrived_at  # real-time mode: when each frame joined the backlog
     ran = sorted(worker.meshing.jobs, key=lambda j: j.version)  # every job run, those that re-meshed nothing too
+    versions = sorted(jobs)  # the jobs that ran a pass
     for n, (index, t_mapped) in enumerate(sorted(worker.mapped_at.items(), key=lambda item: item[1]), start=1):
         if index in arrived:
             run.waited_s.append(t_mapped - arrived[index])
@@ -471,7 +472,7 @@ def _measure(run: Run, worker: MappingWorker, wire: Wire) -> None:
         if first_job is not None and first_job.passes == 0 and not first_job.cut_short:
             run.unchanged += 1  # its job had no chunk to re-mesh (no new voxel; refresh passes show it later)
             continue
-        version = next((v for v in sorted(jobs) if jobs[v][0].field_version >= n), None)
+        version = next((v for v in versions if jobs[v][0].field_version >= n), None)
         if version is None:
             continue
         # the frame's chunks: its job's required ones, or when it allocated nothing (no voxel set changed) the
